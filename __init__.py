@@ -1,0 +1,19 @@
+"""RS Elastic: elastic motion in rotation-strain coordinates. This module only registers."""
+import bpy
+
+from . import operators, panels
+from .bridge import properties, tet_overlay
+
+
+def register():
+    properties.register()
+    for cls in operators.CLASSES + panels.CLASSES:
+        bpy.utils.register_class(cls)
+    tet_overlay.register()
+
+
+def unregister():
+    tet_overlay.unregister()
+    for cls in reversed(operators.CLASSES + panels.CLASSES):
+        bpy.utils.unregister_class(cls)
+    properties.unregister()

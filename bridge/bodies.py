@@ -1,0 +1,282 @@
+"""Prepared bodies: the solver's preparation stages, their disk cache and an in-memory copy.
+
+Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
+Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
+Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.npz` (the temp folder for an
+unsaved file), under a key that hashes everything the stage depends on: a stale file is rebuilt,
+never used; an unreadable one is reported and rebuilt.
+"""
+import collections
+import dataclasses
+import functools
+import os
+import re
+import tempfile
+
+import bpy
+import numpy as np
+import scipy.sparse as sp
+
+from ..solver import cache, embed, fem, modes, tetmesh
+from . import scene
+from .jobs import Cancelled
+from .scene import InputError
+
+# How often each stage really ran in this process (the tests read these to prove cache reuse).
+stats = collections.Counter()
+
+_MEMORY = collections.OrderedDict()   # cache key -> TetBody or LinearModes
+_MEMORY_LIMIT = 16
+
+
+@dataclasses.dataclass
+class TetBody:
+    nodes: np.ndarray        # (N, 3) float64, object space, metres
+    tets: np.ndarray         # (E, 4) int64, positively oriented
+    embedding: sp.csr_matrix  # (n, N) barycentric weights: base vertices = embedding @ nodes
+
+    def to_arrays(self):
+        Phi = self.embedding
+        return dict(nodes=self.nodes, tets=self.tets, phi_data=Phi.data, phi_indices=Phi.indices,
+                    phi_indptr=Phi.indptr, phi_shape=np.asarray(Phi.shape))
+
+    @classmethod
+    def from_arrays(cls, a):
+        Phi = sp.csr_matrix((a["phi_data"], a["phi_indices"], a["phi_indptr"]),
+                            shape=tuple(a["phi_shape"]))
+        return cls(a["nodes"], a["tets"], Phi)
+
+
+@dataclasses.dataclass
+class PreparedBody:
+    tet_body: TetBody
+    linear_modes: modes.LinearModes
+
+    def surface_mode(self, index):
+        """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
+        w = self.linear_modes.vectors[:, index].reshape(-1, 3)
+        return self.tet_body.embedding @ w
+
+
+def _modes_to_arrays(m):
+    return dict(eigenvalues=m.eigenvalues, vectors=m.vectors, pinned_nodes=m.pinned_nodes)
+
+
+def _modes_from_arrays(a):
+    return modes.LinearModes(eigenvalues=a["eigenvalues"], vectors=a["vectors"],
+                             pinned_nodes=a["pinned_nodes"])
+
+
+# --- where the cache lives ------------------------------------------------------------------------
+
+def cache_dirs():
+    """Folders searched for cache files, the first being where new files are written."""
+    temp = os.path.join(tempfile.gettempdir(), "rs_elastic_cache")
+    if not bpy.data.filepath:
+        return [temp]
+    folder, name = os.path.split(bpy.data.filepath)
+    return [os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}"), temp]
+
+
+def cache_file(folder, object_name, stage):
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", object_name)
+    return os.path.join(folder, f"{safe}.{stage}.npz")
+
+
+# --- inputs, read on the main thread ----------------------------------------------------------------
+
+@dataclasses.dataclass
+class BodyInputs:
+    object_name: str
+    surface_vertices: np.ndarray   # evaluated mesh, object space
+    surface_triangles: np.ndarray
+    base_vertices: np.ndarray      # the mesh's own vertices
+    edge_length: float
+    envelope: float
+    cache_dirs: list
+    pin_mask: np.ndarray = None    # (n,) bool over base vertices, None for a free body
+    youngs: float = 0.0
+    poisson: float = 0.0
+    density: float = 0.0
+    num_modes: int = 0
+
+    @functools.cached_property
+    def tets_key(self):
+        return cache.content_key("tets", self.surface_vertices, self.surface_triangles,
+                                 self.base_vertices, self.edge_length, self.envelope)
+
+    @functools.cached_property
+    def modes_key(self):
+        pins = self.pin_mask if self.pin_mask is not None else "free"
+        return cache.content_key("modes", self.tets_key, pins, self.youngs, self.poisson,
+                                 self.density, self.num_modes)
+
+
+def read_inputs(obj, depsgraph, with_material=True):
+    """Validate the object and snapshot everything the stages need. Raises InputError."""
+    scene.require_mesh_object(obj)
+    settings = obj.rs_elastic
+    V, F = scene.evaluated_triangles(obj, depsgraph)
+    try:
+        tetmesh.check_surface(V, F)
+    except tetmesh.TetMeshError as exc:
+        raise InputError(f"'{obj.name}': {exc}") from None
+    inputs = BodyInputs(obj.name, V, F, scene.base_vertices(obj), settings.edge_length,
+                        settings.envelope, cache_dirs())
+    if not with_material:
+        return inputs
+    try:
+        fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)
+        if not settings.density > 0.0:
+            raise ValueError(f"Density must be positive, got {settings.density:g} kg/m³")
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if settings.pin_group:
+        mask = scene.vertex_group_mask(obj, settings.pin_group)
+        if not mask.any():
+            raise InputError(f"Pin group '{settings.pin_group}' has no vertices; "
+                             "clear Pin Group for a free body")
+        if mask.all():
+            raise InputError(f"Every vertex of '{obj.name}' is in pin group "
+                             f"'{settings.pin_group}': nothing is left free to move")
+        inputs.pin_mask = mask
+    inputs.youngs = settings.youngs_modulus
+    inputs.poisson = settings.poisson_ratio
+    inputs.density = settings.density
+    inputs.num_modes = settings.num_modes
+    return inputs
+
+
+# --- the stages (worker-thread safe: no bpy) --------------------------------------------------------
+
+def _remember(key, value):
+    _MEMORY[key] = value
+    _MEMORY.move_to_end(key)
+    while len(_MEMORY) > _MEMORY_LIMIT:
+        _MEMORY.popitem(last=False)
+
+
+def _load_cached(inputs, stage, key, job):
+    """Arrays of a valid cache file for this key, or None. Corrupt files are reported and removed."""
+    for folder in inputs.cache_dirs:
+        path = cache_file(folder, inputs.object_name, stage)
+        try:
+            arrays = cache.load(path, key)
+        except cache.CacheCorrupt as exc:
+            job.warn(f"Cache file {path} is unreadable ({exc}); rebuilding it")
+            try:
+                os.remove(path)
+            except OSError:
+                pass
+            continue
+        if arrays is not None:
+            stats[f"{stage}_cache_hits"] += 1
+            return arrays
+    return None
+
+
+def _save_cached(inputs, stage, key, arrays, job):
+    path = cache_file(inputs.cache_dirs[0], inputs.object_name, stage)
+    try:
+        cache.save(path, key, arrays)
+    except OSError as exc:
+        job.warn(f"Could not write the cache {path}: {exc}")
+
+
+def tet_stage(inputs, job):
+    """The tet mesh and embedding for these inputs: from memory, the disk cache, or fTetWild."""
+    key = inputs.tets_key
+    if key in _MEMORY:
+        return _MEMORY[key]
+    arrays = _load_cached(inputs, "tets", key, job)
+    if arrays is not None:
+        body = TetBody.from_arrays(arrays)
+    else:
+        job.step(0.05, "Tetrahedralising with fTetWild")
+        stats["tetrahedralize"] += 1
+        try:
+            X, T = tetmesh.tetrahedralize(inputs.surface_vertices, inputs.surface_triangles,
+                                          edge_length_fac=inputs.edge_length,
+                                          epsilon=inputs.envelope,
+                                          should_cancel=job.is_cancelled)
+        except tetmesh.TetMeshError as exc:
+            if job.is_cancelled():
+                raise Cancelled() from None
+            raise InputError(f"Tetrahedralisation of '{inputs.object_name}' failed: {exc}") from None
+        job.step(0.45, "Embedding the mesh in the tets")
+        body = TetBody(X, T, embed.embed_points(X, T, inputs.base_vertices))
+        _save_cached(inputs, "tets", key, body.to_arrays(), job)
+    _remember(key, body)
+    return body
+
+
+def modes_stage(inputs, tet_body, job):
+    """Linear modes for the material and pins: from memory, the disk cache, or eigsh."""
+    key = inputs.modes_key
+    if key in _MEMORY:
+        return _MEMORY[key]
+    arrays = _load_cached(inputs, "modes", key, job)
+    if arrays is not None:
+        result = _modes_from_arrays(arrays)
+    else:
+        pinned = None
+        if inputs.pin_mask is not None:
+            pinned = embed.pinned_nodes_from_vertices(tet_body.embedding, inputs.pin_mask)
+            if len(pinned) >= len(tet_body.nodes):
+                raise InputError(f"The pins of '{inputs.object_name}' hold every tet node: "
+                                 "nothing is left free to move")
+        job.step(0.55, "Assembling stiffness and mass")
+        K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, inputs.youngs, inputs.poisson)
+        masses = fem.lumped_masses(tet_body.nodes, tet_body.tets, inputs.density)
+        job.step(0.65, f"Computing {inputs.num_modes} linear modes")
+        stats["modes"] += 1
+        try:
+            result = modes.linear_modes(K, masses, inputs.num_modes, pinned)
+        except ValueError as exc:
+            raise InputError(f"'{inputs.object_name}': {exc}") from None
+        _save_cached(inputs, "modes", key, _modes_to_arrays(result), job)
+    _remember(key, result)
+    return result
+
+
+def prepare(inputs, job):
+    """Both stages; returns a PreparedBody."""
+    tet_body = tet_stage(inputs, job)
+    linear_modes = modes_stage(inputs, tet_body, job)
+    job.step(1.0, "Done")
+    return PreparedBody(tet_body, linear_modes)
+
+
+# --- for the preview and later operators -------------------------------------------------------------
+
+def load_prepared(obj):
+    """The PreparedBody the object was last prepared with, or None if it cannot be found."""
+    settings = obj.rs_elastic
+    if not settings.prepared_key:
+        return None
+    tet_body = _load_stage(obj, "tets", settings.tets_key)
+    linear_modes = _load_stage(obj, "modes", settings.prepared_key)
+    if tet_body is None or linear_modes is None:
+        return None
+    return PreparedBody(tet_body, linear_modes)
+
+
+def load_tet_body(obj):
+    return _load_stage(obj, "tets", obj.rs_elastic.tets_key)
+
+
+def _load_stage(obj, stage, key):
+    if not key:
+        return None
+    if key in _MEMORY:
+        return _MEMORY[key]
+    for folder in cache_dirs():
+        try:
+            arrays = cache.load(cache_file(folder, obj.name, stage), key)
+        except cache.CacheCorrupt:
+            continue
+        if arrays is not None:
+            value = TetBody.from_arrays(arrays) if stage == "tets" else _modes_from_arrays(arrays)
+            _remember(key, value)
+            return value
+    return None

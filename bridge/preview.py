@@ -1,0 +1,69 @@
+"""Live mode preview as a temporary shape key.
+
+The preview owns one shape key, named PREVIEW_KEY, and the Basis key if the mesh had none. Turning
+the preview off removes exactly those, so the mesh is left as it was; the base vertices are never
+written.
+"""
+import numpy as np
+
+from . import bodies, scene
+
+PREVIEW_KEY = "RS Elastic Preview"
+
+
+def refresh(obj):
+    """Bring the preview key in line with obj.rs_elastic (called from the property updates)."""
+    if obj.rs_elastic.preview_enabled:
+        show(obj)
+    else:
+        hide(obj)
+
+
+def preview_positions(obj, body):
+    """(n, 3) base-vertex positions for the selected mode and amplitude."""
+    settings = obj.rs_elastic
+    rest = scene.base_vertices(obj)
+    count = body.linear_modes.vectors.shape[1]
+    u = body.surface_mode(min(settings.preview_mode, count) - 1)
+    peak = np.linalg.norm(u, axis=1).max()
+    diagonal = np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))
+    if peak == 0.0:
+        return rest
+    return rest + u * (settings.preview_amplitude * diagonal / peak)
+
+
+def show(obj):
+    body = bodies.load_prepared(obj)
+    if body is None or body.tet_body.embedding.shape[0] != len(obj.data.vertices):
+        return False  # not prepared for this mesh; the panel says so
+    positions = preview_positions(obj, body)
+    key = _preview_key(obj)
+    if key is None:
+        if obj.data.shape_keys is None:
+            obj.rs_elastic.preview_made_basis = True
+            obj.shape_key_add(name="Basis", from_mix=False)
+        key = obj.shape_key_add(name=PREVIEW_KEY, from_mix=False)
+    key.data.foreach_set("co", positions.astype(np.float32).ravel())
+    key.value = 1.0
+    obj.data.update()
+    return True
+
+
+def hide(obj):
+    key = _preview_key(obj)
+    if key is not None:
+        obj.shape_key_remove(key)
+    keys = obj.data.shape_keys
+    if obj.rs_elastic.preview_made_basis and keys is not None and len(keys.key_blocks) == 1:
+        obj.shape_key_clear()
+    obj.rs_elastic.preview_made_basis = False
+    obj.data.update()
+
+
+def is_shown(obj):
+    return _preview_key(obj) is not None
+
+
+def _preview_key(obj):
+    keys = obj.data.shape_keys if obj.type == 'MESH' else None
+    return None if keys is None else keys.key_blocks.get(PREVIEW_KEY)

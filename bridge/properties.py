@@ -1,0 +1,100 @@
+"""Per-object settings and results, saved in the .blend (`obj.rs_elastic`)."""
+import bpy
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       IntProperty, StringProperty)
+
+from . import preview, tet_overlay
+
+
+def _preview_changed(self, context):
+    preview.refresh(self.id_data)
+
+
+def _show_tets_changed(self, context):
+    tet_overlay.tag_redraw(context)
+
+
+class RSElasticMode(bpy.types.PropertyGroup):
+    """One linear mode's result, for the panel and for scripts."""
+    frequency_hz: FloatProperty(name="Frequency", unit='NONE', description="Natural frequency in Hz")
+
+
+class RSElasticSettings(bpy.types.PropertyGroup):
+    # --- Tetrahedralisation (fTetWild) -------------------------------------------------------------
+    edge_length: FloatProperty(
+        name="Edge Length", default=0.05, min=0.005, max=0.5, precision=3,
+        description="Target tet edge length, as a fraction of the bounding-box diagonal. "
+                    "Smaller is finer and slower")
+    envelope: FloatProperty(
+        name="Envelope", default=1e-3, min=1e-5, max=0.1, precision=4,
+        description="How far the tet surface may stray from the mesh, as a fraction of the "
+                    "bounding-box diagonal")
+    show_tets: BoolProperty(
+        name="Show Tets", default=False, update=_show_tets_changed,
+        description="Draw the tet mesh's edges in the viewport (an overlay; the mesh is not changed)")
+
+    # --- Material (no hard limits, so bad values reach the operators and get a clear message) ------
+    youngs_modulus: FloatProperty(
+        name="Young's Modulus", default=1.0e6, soft_min=1.0, soft_max=1e11, precision=0,
+        description="Stiffness in pascals (Pa)")
+    poisson_ratio: FloatProperty(
+        name="Poisson's Ratio", default=0.45, soft_min=-0.99, soft_max=0.499, precision=3,
+        description="Lateral contraction; must lie strictly between -1 and 0.5")
+    density: FloatProperty(
+        name="Density", default=1100.0, soft_min=1.0, soft_max=20000.0, precision=1,
+        description="Mass density in kg/m³ (Blender units are metres)")
+    pin_group: StringProperty(
+        name="Pin Group",
+        description="Vertex group whose vertices are held fixed; empty for a free body")
+    num_modes: IntProperty(
+        name="Modes", default=20, min=1, soft_max=100,
+        description="Number of linear deformation modes to compute")
+
+    # --- Results, written by the operators -----------------------------------------------------------
+    tet_node_count: IntProperty(name="Nodes", default=0)
+    tet_count: IntProperty(name="Tets", default=0)
+    tets_key: StringProperty(name="Tet Mesh Key", default="",
+                             description="Cache key of the tet mesh this object was tetrahedralised to")
+    prepared_key: StringProperty(name="Prepared Key", default="",
+                                 description="Cache key of the modes this object was prepared with")
+    mode_results: CollectionProperty(type=RSElasticMode)
+    mnf: FloatProperty(name="MNF", default=0.0,
+                       description="Minimal natural frequency sqrt(lambda_1) in rad/s: lower means a "
+                                   "softer, more nonlinear body")
+
+    # --- Mode preview ---------------------------------------------------------------------------------
+    preview_enabled: BoolProperty(
+        name="Preview Mode", default=False, update=_preview_changed,
+        description="Show the body displaced along one mode (a temporary shape key, removed when off)")
+    preview_mode: IntProperty(name="Mode", default=1, min=1, update=_preview_changed,
+                              description="Which mode to show (1 = lowest frequency)")
+    preview_amplitude: FloatProperty(
+        name="Amplitude", default=0.1, soft_min=-1.0, soft_max=1.0, precision=3,
+        update=_preview_changed,
+        description="Largest displacement of the mode, as a fraction of the bounding-box diagonal")
+    preview_made_basis: BoolProperty(default=False, options={'HIDDEN'},
+                                     description="The preview created the Basis key and removes it")
+
+    @property
+    def frequencies(self):
+        """Natural frequencies in Hz, ascending (empty until prepared)."""
+        return tuple(item.frequency_hz for item in self.mode_results)
+
+    @property
+    def is_prepared(self):
+        return bool(self.prepared_key)
+
+
+CLASSES = (RSElasticMode, RSElasticSettings)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Object.rs_elastic = bpy.props.PointerProperty(type=RSElasticSettings)
+
+
+def unregister():
+    del bpy.types.Object.rs_elastic
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,29 @@
+"""Set the active body's material from a named preset."""
+import bpy
+
+from ..bridge.presets import MATERIAL_PRESETS
+
+
+class RS_ELASTIC_OT_apply_material_preset(bpy.types.Operator):
+    """Set Young's modulus, Poisson's ratio and density from a preset"""
+    bl_idname = "rs_elastic.apply_material_preset"
+    bl_label = "Material Preset"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    preset: bpy.props.EnumProperty(
+        name="Preset",
+        items=[(key, label, f"E = {E:.3g} Pa, ν = {nu}, ρ = {rho:g} kg/m³")
+               for key, (label, E, nu, rho) in MATERIAL_PRESETS.items()])
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.type == 'MESH'
+
+    def execute(self, context):
+        _, E, nu, rho = MATERIAL_PRESETS[self.preset]
+        settings = context.active_object.rs_elastic
+        settings.youngs_modulus, settings.poisson_ratio, settings.density = E, nu, rho
+        return {'FINISHED'}
+
+
+CLASSES = (RS_ELASTIC_OT_apply_material_preset,)

@@ -1,0 +1,37 @@
+"""Prepare the active body: tet mesh (if missing), stiffness, mass and linear modes."""
+import bpy
+
+from ..bridge import bodies, jobs, preview, tet_overlay
+
+
+class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
+    """Compute the active body's elastic modes (cached next to the .blend)"""
+    bl_idname = "rs_elastic.prepare"
+    bl_label = "Prepare Body"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def make_work(self, context):
+        inputs = bodies.read_inputs(context.active_object, context.evaluated_depsgraph_get())
+        self._inputs = inputs
+        return lambda job: bodies.prepare(inputs, job)
+
+    def apply(self, context, body, job):
+        obj = bpy.data.objects[self._inputs.object_name]
+        settings = obj.rs_elastic
+        settings.tets_key = self._inputs.tets_key
+        settings.prepared_key = self._inputs.modes_key
+        settings.tet_node_count = len(body.tet_body.nodes)
+        settings.tet_count = len(body.tet_body.tets)
+        settings.mode_results.clear()
+        for f in body.linear_modes.frequencies_hz:
+            settings.mode_results.add().frequency_hz = float(f)
+        settings.mnf = float(body.linear_modes.mnf)
+        if settings.preview_enabled:
+            preview.show(obj)
+        tet_overlay.tag_redraw(context)
+        f = body.linear_modes.frequencies_hz
+        self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz")
+        return {'FINISHED'}
+
+
+CLASSES = (RS_ELASTIC_OT_prepare,)

@@ -1,0 +1,39 @@
+"""The parent panel: which body the settings below belong to."""
+import bpy
+
+
+class RSElasticPanel:
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "RS Elastic"
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH'
+
+
+class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
+    bl_label = "RS Elastic"
+
+    @classmethod
+    def poll(cls, context):
+        return True
+
+    def draw(self, context):
+        obj = context.active_object
+        if obj is None or obj.type != 'MESH':
+            self.layout.label(text="Select a mesh object", icon='INFO')
+            return
+        settings = obj.rs_elastic
+        row = self.layout.row()
+        row.label(text=obj.name, icon='MESH_DATA')
+        if settings.is_prepared:
+            row.label(text="Prepared", icon='CHECKMARK')
+        elif settings.tets_key:
+            row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
+        else:
+            row.label(text="Not prepared", icon='DOT')
+
+
+CLASSES = (RS_ELASTIC_PT_body,)

@@ -1,0 +1,53 @@
+"""Material, pins and modes, and the Prepare operator with its results."""
+import bpy
+
+from .body import RSElasticPanel
+
+
+class RS_ELASTIC_UL_modes(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        layout.label(text=f"Mode {index + 1}")
+        layout.label(text=f"{item.frequency_hz:.4g} Hz")
+
+
+class RS_ELASTIC_MT_material_presets(bpy.types.Menu):
+    bl_label = "Material Presets"
+
+    def draw(self, context):
+        self.layout.operator_enum("rs_elastic.apply_material_preset", "preset")
+
+
+class RS_ELASTIC_PT_material(RSElasticPanel, bpy.types.Panel):
+    bl_label = "Material and Pins"
+    bl_parent_id = "RS_ELASTIC_PT_body"
+
+    def draw(self, context):
+        obj = context.active_object
+        settings = obj.rs_elastic
+        layout = self.layout
+        layout.menu("RS_ELASTIC_MT_material_presets", icon='PRESET')
+        layout.use_property_split = True
+        layout.prop(settings, "youngs_modulus", text="Young's Modulus (Pa)")
+        layout.prop(settings, "poisson_ratio")
+        layout.prop(settings, "density", text="Density (kg/m³)")
+        layout.prop_search(settings, "pin_group", obj, "vertex_groups")
+
+
+class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
+    bl_label = "Modes"
+    bl_parent_id = "RS_ELASTIC_PT_body"
+
+    def draw(self, context):
+        settings = context.active_object.rs_elastic
+        layout = self.layout
+        row = layout.row()
+        row.prop(settings, "num_modes")
+        layout.operator("rs_elastic.prepare", icon='PLAY')
+        if settings.is_prepared:
+            layout.label(text=f"MNF {settings.mnf:.4g} rad/s")
+            layout.template_list("RS_ELASTIC_UL_modes", "", settings, "mode_results",
+                                 settings, "preview_mode", rows=4)
+
+
+CLASSES = (RS_ELASTIC_UL_modes, RS_ELASTIC_MT_material_presets, RS_ELASTIC_PT_material,
+           RS_ELASTIC_PT_modes)

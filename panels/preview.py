@@ -1,0 +1,27 @@
+"""Mode preview controls."""
+import bpy
+
+from ..bridge import preview
+from .body import RSElasticPanel
+
+
+class RS_ELASTIC_PT_preview(RSElasticPanel, bpy.types.Panel):
+    bl_label = "Mode Preview"
+    bl_parent_id = "RS_ELASTIC_PT_body"
+
+    def draw_header(self, context):
+        self.layout.prop(context.active_object.rs_elastic, "preview_enabled", text="")
+
+    def draw(self, context):
+        obj = context.active_object
+        settings = obj.rs_elastic
+        layout = self.layout
+        layout.use_property_split = True
+        layout.active = settings.preview_enabled
+        layout.prop(settings, "preview_mode")
+        layout.prop(settings, "preview_amplitude", slider=True)
+        if settings.preview_enabled and not preview.is_shown(obj):
+            layout.label(text="Prepare the body to preview its modes", icon='ERROR')
+
+
+CLASSES = (RS_ELASTIC_PT_preview,)

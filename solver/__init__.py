@@ -1,0 +1,14 @@
+"""Blender-free numerical core of RS Elastic.
+
+Plain numpy / scipy / libigl functions on arrays, one concept per module:
+
+- ``fem``      linear-tetrahedron finite elements: gradient operator G, stiffness K, lumped mass.
+- ``modes``    linear modal analysis (K w = lambda M w), free or pinned bodies.
+- ``embed``    barycentric embedding of render-mesh vertices in the tet mesh (sparse Phi).
+- ``tetmesh``  fTetWild tetrahedralisation, run in a separate process so a crash cannot kill Blender.
+- ``cache``    content-keyed, atomically written ``.npz`` cache files.
+- ``meshgen``  structured box tet meshes (tests and benchmarks).
+
+Nothing in this package imports ``bpy`` or ``mathutils``; Blender code converts its data to
+numpy arrays and calls in. Units: metres, kilograms, seconds, pascals (see SPEC.md).
+"""

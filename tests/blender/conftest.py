@@ -1,0 +1,34 @@
+"""Blender tests: the extension is built, installed from its zip into a throw-away Blender user
+folder and enabled, before any test imports bpy. Run through `make test-blender`."""
+import os
+import pathlib
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+
+import blender_session  # noqa: E402
+
+ZIP = os.environ.get("RS_ELASTIC_ZIP")
+if not ZIP:
+    raise pytest.UsageError("RS_ELASTIC_ZIP is not set: run the Blender tests with `make test-blender`")
+EXTENSION = blender_session.start(ROOT / ZIP)
+USER_DIR = os.environ["BLENDER_USER_RESOURCES"]
+
+import bpy  # noqa: E402
+
+
+@pytest.fixture
+def ext():
+    """The installed extension package (bl_ext.user_default.rs_elastic)."""
+    return EXTENSION
+
+
+@pytest.fixture(autouse=True)
+def empty_scene(tmp_path):
+    """Every test starts from an empty, unsaved file."""
+    bpy.ops.wm.read_homefile(use_empty=True)
+    EXTENSION.bridge.bodies.stats.clear()
+    yield

@@ -1,0 +1,89 @@
+"""The body cache: next to the saved .blend, reused by a new process, rebuilt when stale or corrupt."""
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import bpy
+
+from blender_helpers import make_bar
+from conftest import ROOT, USER_DIR
+
+REOPEN_SCRIPT = """
+import json, sys
+sys.path.insert(0, {tools!r})
+import blender_session
+ext = blender_session.start(user_dir={user_dir!r})
+import bpy
+bpy.ops.wm.open_mainfile(filepath={blend!r})
+obj = bpy.data.objects["Bar"]
+bpy.context.view_layer.objects.active = obj
+result = bpy.ops.rs_elastic.prepare()
+print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.bodies.stats),
+                                  frequencies=list(obj.rs_elastic.frequencies))))
+"""
+
+
+def prepare_bar(ext):
+    obj = make_bar()
+    obj.rs_elastic.edge_length = 0.08
+    obj.rs_elastic.num_modes = 5
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    return obj
+
+
+def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuses_it(ext, tmp_path):
+    obj = prepare_bar(ext)
+    blend = tmp_path / "shot.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    # Prepare again now that the file has a name: the cache moves next to it, nothing recomputed.
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert ext.bridge.bodies.stats["modes"] == 1
+    folder = tmp_path / "blendcache_shot"
+    files = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    assert set(files) == {"Bar.tets.npz", "Bar.modes.npz"}
+    bpy.ops.wm.save_mainfile()
+
+    script = REOPEN_SCRIPT.format(tools=str(ROOT / "tools"), user_dir=USER_DIR, blend=str(blend))
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    line = [l for l in out.stdout.splitlines() if l.startswith("RESULT ")]
+    assert line, out.stdout + out.stderr
+    child = json.loads(line[0][7:])
+    assert child["result"] == ["FINISHED"]
+    assert child["stats"].get("tetrahedralize", 0) == 0 and child["stats"].get("modes", 0) == 0
+    assert child["stats"]["tets_cache_hits"] == 1 and child["stats"]["modes_cache_hits"] == 1
+    np.testing.assert_allclose(child["frequencies"], obj.rs_elastic.frequencies, rtol=1e-12)
+    assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == files
+
+
+def test_stale_cache_is_rebuilt_per_stage(ext):
+    obj = prepare_bar(ext)
+    stats = ext.bridge.bodies.stats
+    assert (stats["tetrahedralize"], stats["modes"]) == (1, 1)
+    obj.rs_elastic.density *= 2.0                       # material: only the modes are stale
+    ext.bridge.bodies._MEMORY.clear()
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["tetrahedralize"], stats["modes"]) == (1, 2)
+    obj.data.vertices[0].co.x -= 0.2                    # mesh: everything is stale
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["tetrahedralize"], stats["modes"]) == (2, 3)
+
+
+def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
+    obj = prepare_bar(ext)
+    before = np.array(obj.rs_elastic.frequencies)
+    path = pathlib.Path(ext.bridge.bodies.cache_file(ext.bridge.bodies.cache_dirs()[0], "Bar", "modes"))
+    path.write_bytes(b"this is not a cache file")
+    ext.bridge.bodies._MEMORY.clear()
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert ext.bridge.bodies.stats["modes"] == 2
+    np.testing.assert_allclose(obj.rs_elastic.frequencies, before, rtol=1e-10)
+    assert ext.solver.cache.load(str(path), obj.rs_elastic.prepared_key) is not None
+
+
+def test_unsaved_file_uses_the_temp_folder(ext):
+    assert bpy.data.filepath == ""
+    import tempfile
+    assert ext.bridge.bodies.cache_dirs() == [os.path.join(tempfile.gettempdir(), "rs_elastic_cache")]

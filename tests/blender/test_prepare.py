@@ -1,0 +1,91 @@
+"""Tetrahedralise and prepare real scenes in the installed extension."""
+import numpy as np
+import pytest
+import bpy
+
+from blender_helpers import diagonal, import_shared, make_bar, vertices
+
+
+def prepared(obj, edge_length=0.08, num_modes=8):
+    obj.rs_elastic.edge_length = edge_length
+    obj.rs_elastic.num_modes = num_modes
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    return obj
+
+
+def check_body(ext, obj, num_modes):
+    settings = obj.rs_elastic
+    f = np.array(settings.frequencies)
+    assert len(f) == num_modes
+    assert np.all(f > 0) and np.all(np.diff(f) >= 0)
+    assert settings.mnf == pytest.approx(2 * np.pi * f[0], rel=1e-6)
+    assert settings.tet_count > 0 and settings.tet_node_count > 0
+    body = ext.bridge.bodies.load_prepared(obj)
+    assert body.tet_body.tets.shape == (settings.tet_count, 4)
+    # The embedding reproduces the mesh at rest.
+    rest = vertices(obj)
+    error = np.abs(body.tet_body.embedding @ body.tet_body.nodes - rest).max()
+    assert error <= 1e-6 * diagonal(rest)
+    return body
+
+
+def test_suzanne_free_body(ext):
+    bpy.ops.mesh.primitive_monkey_add()
+    obj = prepared(bpy.context.active_object)
+    body = check_body(ext, obj, 8)
+    assert len(body.linear_modes.pinned_nodes) == 0
+
+
+@pytest.mark.parametrize("name", ["cow.off", "spot.obj"])
+def test_shared_meshes(ext, name):
+    obj = prepared(import_shared(name), edge_length=0.1, num_modes=6)
+    check_body(ext, obj, 6)
+
+
+def test_tetrahedralize_alone_reports_counts_and_evaluated_mesh(ext):
+    bpy.ops.mesh.primitive_cube_add(size=2.0)
+    obj = bpy.context.active_object
+    # A modifier changes what is tetrahedralised: the evaluated mesh, in object space.
+    obj.modifiers.new("Bevel", 'BEVEL').width = 0.3
+    obj.location = (5.0, 0.0, 0.0)
+    obj.rs_elastic.edge_length = 0.1
+    assert bpy.ops.rs_elastic.tetrahedralize() == {'FINISHED'}
+    settings = obj.rs_elastic
+    tet_body = ext.bridge.bodies.load_tet_body(obj)
+    assert settings.tet_count == len(tet_body.tets) > 0
+    assert settings.tet_node_count == len(tet_body.nodes)
+    volume = ext.solver.fem.mesh_volume(tet_body.nodes, tet_body.tets)
+    assert volume < 8.0 * 0.99          # the bevel cut the corners off the 2 m cube
+    assert volume > 8.0 * 0.8
+    assert np.abs(tet_body.nodes).max() < 1.0 + 1e-2   # object space, not world space
+    assert settings.prepared_key == ""
+
+
+def test_pinned_bar_modes_vanish_on_the_pins(ext):
+    obj = prepared(make_bar(), edge_length=0.06, num_modes=6)
+    body = check_body(ext, obj, 6)
+    pinned = vertices(obj)[:, 0] < 1e-9
+    for k in range(6):
+        assert np.abs(body.surface_mode(k)[pinned]).max() == 0.0
+    assert np.abs(body.surface_mode(0)[~pinned]).max() > 0.0
+    # The first two modes of a square bar are its two bending modes: equal frequency.
+    f = obj.rs_elastic.frequencies
+    assert f[1] == pytest.approx(f[0], rel=0.05)
+
+
+def test_material_presets_set_the_material(ext):
+    bpy.ops.mesh.primitive_cube_add()
+    obj = bpy.context.active_object
+    bpy.ops.rs_elastic.apply_material_preset(preset='JELLY')
+    _, E, nu, rho = ext.bridge.presets.MATERIAL_PRESETS['JELLY']
+    assert (obj.rs_elastic.youngs_modulus, obj.rs_elastic.density) == pytest.approx((E, rho))
+    assert obj.rs_elastic.poisson_ratio == pytest.approx(nu)
+
+
+def test_stiffer_material_scales_frequencies_by_sqrt(ext):
+    obj = prepared(make_bar(), edge_length=0.08, num_modes=4)
+    f1 = np.array(obj.rs_elastic.frequencies)
+    obj.rs_elastic.youngs_modulus *= 4.0
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    f2 = np.array(obj.rs_elastic.frequencies)
+    np.testing.assert_allclose(f2, 2.0 * f1, rtol=1e-6)

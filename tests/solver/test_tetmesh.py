@@ -1,0 +1,148 @@
+"""Tests for solver.tetmesh: fTetWild in a child process, input checks, crash isolation."""
+
+import sys
+import time
+
+import igl
+import numpy as np
+import pytest
+
+from solver import fem, tetmesh
+
+
+def cube_surface(size=2.0):
+    """Closed, outward-oriented triangle surface of [0, size]^3 (12 triangles)."""
+    V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * size
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    F = np.array([[q[0], q[1], q[2]] for q in quads] + [[q[0], q[2], q[3]] for q in quads])
+    return V, F
+
+
+def icosphere(levels=3):
+    """Unit icosphere: icosahedron, loop-subdivided ``levels`` times, projected to the sphere."""
+    t = (1.0 + 5.0 ** 0.5) / 2.0
+    V = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    F = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                  [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                  [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    V, F = igl.upsample(V, F, levels)
+    return V / np.linalg.norm(V, axis=1, keepdims=True), F
+
+
+def enclosed_volume(V, F):
+    a, b, c = (V[F[:, i]] for i in range(3))
+    return np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
+
+
+def check_tet_mesh(X, T):
+    assert X.dtype == np.float64 and T.dtype == np.int64 and T.shape[1] == 4
+    assert np.all(fem.tet_volumes(X, T) > 0)
+    np.testing.assert_array_equal(np.unique(T), np.arange(len(X)))  # no unreferenced nodes
+
+
+def test_cube_tetrahedralises_to_its_volume():
+    V, F = cube_surface(2.0)
+    X, T = tetmesh.tetrahedralize(V, F, edge_length_fac=0.2)
+    check_tet_mesh(X, T)
+    assert fem.mesh_volume(X, T) == pytest.approx(8.0, rel=0.01)
+
+
+def test_icosphere_tetrahedralises_to_its_volume():
+    V, F = icosphere()
+    X, T = tetmesh.tetrahedralize(V, F, edge_length_fac=0.1)
+    check_tet_mesh(X, T)
+    volume = fem.mesh_volume(X, T)
+    assert volume == pytest.approx(enclosed_volume(V, F), rel=0.005)  # the polyhedron itself
+    assert volume == pytest.approx(4.0 / 3.0 * np.pi, rel=0.02)       # the sphere it approximates
+
+
+def test_empty_surface_raises():
+    with pytest.raises(tetmesh.TetMeshError, match="no faces"):
+        tetmesh.tetrahedralize(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    with pytest.raises(tetmesh.TetMeshError, match="no faces"):
+        tetmesh.check_surface(np.zeros((4, 3)), np.zeros((0, 3), dtype=np.int64))
+
+
+def test_flat_surfaces_raise():
+    # A square in the plane z = 0 (both sides, so it is "closed" but has no thickness) ...
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])
+    with pytest.raises(tetmesh.TetMeshError, match="flat"):
+        tetmesh.tetrahedralize(V, F)
+    # ... and the same square tilted out of every coordinate plane.
+    rotation = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    with pytest.raises(tetmesh.TetMeshError, match="flat"):
+        tetmesh.check_surface(V @ rotation.T + 5.0, F)
+
+
+def test_surface_enclosing_no_volume_raises():
+    V, F = cube_surface()
+    doubled = np.vstack([F, F[:, ::-1]])  # every face twice, facing both ways
+    with pytest.raises(tetmesh.TetMeshError, match="no volume"):
+        tetmesh.check_surface(V, doubled)
+
+
+def test_closed_surface_passes_check():
+    tetmesh.check_surface(*cube_surface())
+    V, F = cube_surface()
+    tetmesh.check_surface(V, F[:, ::-1])  # inside-out orientation still encloses a volume
+
+
+def write_script(tmp_path, body):
+    path = tmp_path / "fake_worker.py"
+    path.write_text(body)
+    return path
+
+
+def test_crashing_worker_is_reported_not_fatal(tmp_path, monkeypatch):
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, "import os\nos.abort()\n"))
+    with pytest.raises(tetmesh.TetMeshError, match="crashed with signal SIGABRT"):
+        tetmesh.tetrahedralize(*cube_surface())
+
+
+def test_failing_worker_reports_exit_code_and_last_stderr_line(tmp_path, monkeypatch):
+    script = "import sys\nprint('noise', file=sys.stderr)\nsys.exit('boom: bad surface')\n"
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, script))
+    with pytest.raises(tetmesh.TetMeshError, match=r"exit code 1\): boom: bad surface"):
+        tetmesh.tetrahedralize(*cube_surface())
+
+
+def test_worker_without_output_or_tets_raises(tmp_path, monkeypatch):
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, "pass\n"))
+    with pytest.raises(tetmesh.TetMeshError, match="no readable result"):
+        tetmesh.tetrahedralize(*cube_surface())
+    script = ("import sys, numpy as np\n"
+              "np.savez(open(sys.argv[2], 'wb'), nodes=np.zeros((0, 3)),"
+              " tets=np.zeros((0, 4), np.int32))\n")
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, script))
+    with pytest.raises(tetmesh.TetMeshError, match="no tetrahedra"):
+        tetmesh.tetrahedralize(*cube_surface())
+
+
+def test_hanging_worker_times_out(tmp_path, monkeypatch):
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, "import time\ntime.sleep(30)\n"))
+    with pytest.raises(tetmesh.TetMeshError, match="did not finish"):
+        tetmesh.tetrahedralize(*cube_surface(), timeout=1.0)
+
+
+def test_cancel_kills_the_worker_promptly(tmp_path, monkeypatch):
+    monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, "import time\ntime.sleep(30)\n"))
+    polls = []
+    start = time.monotonic()
+    with pytest.raises(tetmesh.TetMeshError, match="cancelled"):
+        tetmesh.tetrahedralize(*cube_surface(), should_cancel=lambda: polls.append(1) or len(polls) > 3)
+    assert time.monotonic() - start < 5.0
+
+
+def test_worker_interpreter_is_configurable(tmp_path):
+    """``python=`` selects the interpreter; a broken one is a TetMeshError, not an exception leak."""
+    fake_python = tmp_path / "python_that_dies"
+    fake_python.write_text("#!/bin/sh\nkill -SEGV $$\n")
+    fake_python.chmod(0o755)
+    with pytest.raises(tetmesh.TetMeshError, match="SIGSEGV"):
+        tetmesh.tetrahedralize(*cube_surface(), python=str(fake_python))
+    with pytest.raises(tetmesh.TetMeshError, match="could not start"):
+        tetmesh.tetrahedralize(*cube_surface(), python=str(tmp_path / "missing"))
+    X, T = tetmesh.tetrahedralize(*cube_surface(), edge_length_fac=0.3, python=sys.executable)
+    check_tet_mesh(X, T)
