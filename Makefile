@@ -5,7 +5,7 @@ PY        := $(VENV)/bin/python
 EXT_TOOL   = $(VENV)/lib/python3.11/site-packages/bpy/5.0/scripts/addons_core/bl_pkg/cli/blender_ext.py
 VERSION   := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 LINUX_ZIP := dist/rs_elastic-$(VERSION)-linux_x64.zip
-SOURCES   := $(shell git ls-files '*.py' '*.toml' 2>/dev/null | grep -v -e '^tests/' -e '^tools/' -e '^bench/')
+SOURCES   := blender_manifest.toml $(wildcard *.py bridge/*.py operators/*.py panels/*.py solver/*.py)
 
 .PHONY: all venv deps wheels build validate test test-solver test-blender demo bench clean
 

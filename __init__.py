@@ -2,7 +2,7 @@
 import bpy
 
 from . import operators, panels
-from .bridge import properties, tet_overlay
+from .bridge import handlers, properties, tet_overlay
 
 
 def register():
@@ -10,9 +10,11 @@ def register():
     for cls in operators.CLASSES + panels.CLASSES:
         bpy.utils.register_class(cls)
     tet_overlay.register()
+    handlers.register()
 
 
 def unregister():
+    handlers.unregister()
     tet_overlay.unregister()
     for cls in reversed(operators.CLASSES + panels.CLASSES):
         bpy.utils.unregister_class(cls)

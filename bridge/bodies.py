@@ -163,7 +163,7 @@ def _load_cached(inputs, stage, key, job):
         try:
             arrays = cache.load(path, key)
         except cache.CacheCorrupt as exc:
-            job.warn(f"Cache file {path} is unreadable ({exc}); rebuilding it")
+            job.warn(f"{exc}; rebuilding it")
             try:
                 os.remove(path)
             except OSError:
@@ -259,6 +259,25 @@ def load_prepared(obj):
     if tet_body is None or linear_modes is None:
         return None
     return PreparedBody(tet_body, linear_modes)
+
+
+def persist(obj):
+    """Make sure the object's prepared stages are in its primary cache folder (after a file is
+    saved under a new name its cache moves next to it)."""
+    settings = obj.rs_elastic
+    folder = cache_dirs()[0]
+    for stage, key in (("tets", settings.tets_key), ("modes", settings.prepared_key)):
+        path = cache_file(folder, obj.name, stage)
+        if not key or cache.stored_key(path) == key:
+            continue
+        value = _load_stage(obj, stage, key)
+        if value is None:
+            continue
+        arrays = value.to_arrays() if stage == "tets" else _modes_to_arrays(value)
+        try:
+            cache.save(path, key, arrays)
+        except OSError as exc:
+            print(f"RS Elastic: could not write the cache {path}: {exc}")
 
 
 def load_tet_body(obj):

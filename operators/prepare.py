@@ -28,6 +28,7 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         settings.mnf = float(body.linear_modes.mnf)
         if settings.preview_enabled:
             preview.show(obj)
+        bodies.persist(obj)
         tet_overlay.tag_redraw(context)
         f = body.linear_modes.frequencies_hz
         self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz")

@@ -98,11 +98,21 @@ def load(path, key):
     try:
         version, stored_key = int(arrays.pop(_VERSION_FIELD)), str(arrays.pop(_KEY_FIELD))
     except (KeyError, TypeError, ValueError) as exc:
-        raise CacheCorrupt(f"cache file {path} is not an RS Elastic cache file; "
-                           "delete it to rebuild") from exc
+        raise CacheCorrupt(f"cache file {path} is not an RS Elastic cache file") from exc
     if version != FORMAT_VERSION or stored_key != str(key):
         return None
     return arrays
+
+
+def stored_key(path):
+    """The key a cache file was saved under, reading nothing else; None if missing or unreadable."""
+    try:
+        with np.load(os.fspath(path), allow_pickle=False) as data:
+            if int(data[_VERSION_FIELD]) != FORMAT_VERSION:
+                return None
+            return str(data[_KEY_FIELD])
+    except Exception:  # missing, truncated or foreign: the caller treats it as "not this key"
+        return None
 
 
 def _read_npz(path):
@@ -115,4 +125,4 @@ def _read_npz(path):
             # Read every member now, so truncated data fails here and not in the caller.
             return {name: data[name] for name in data.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-        raise CacheCorrupt(f"cache file {path} is unreadable ({exc}); delete it to rebuild") from exc
+        raise CacheCorrupt(f"cache file {path} is unreadable ({exc})") from exc

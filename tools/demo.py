@@ -29,7 +29,7 @@ def make_bar(bpy, np):
     bar = bpy.context.active_object
     bar.name = "Rubber Bar"
     bpy.ops.object.mode_set(mode='EDIT')
-    bpy.ops.mesh.subdivide(number_cuts=3)
+    bpy.ops.mesh.subdivide(number_cuts=9)
     bpy.ops.object.mode_set(mode='OBJECT')
     co = np.empty(len(bar.data.vertices) * 3)
     bar.data.vertices.foreach_get("co", co)
@@ -87,7 +87,7 @@ def add_label(bpy, text, location, size=0.45):
 
 def stage(bpy, output):
     scene = bpy.context.scene
-    bpy.ops.object.camera_add(location=(0.0, -17.0, 1.6), rotation=(1.5708, 0.0, 0.0))
+    bpy.ops.object.camera_add(location=(0.0, -16.0, 1.3), rotation=(1.5708, 0.0, 0.0))
     scene.camera = bpy.context.active_object
     scene.camera.data.lens = 32
     scene.render.engine = 'BLENDER_WORKBENCH'
@@ -116,7 +116,7 @@ def main():
     bar = make_bar(bpy, np)
     suzanne = make_suzanne(bpy)
     prepare(bpy, bar, edge_length=0.03, amplitude=0.12)
-    prepare(bpy, suzanne, edge_length=0.05, amplitude=0.06)
+    prepare(bpy, suzanne, edge_length=0.05, amplitude=0.12)
 
     for obj, color in ((bar, (0.85, 0.35, 0.2, 1.0)), (suzanne, (0.3, 0.55, 0.85, 1.0))):
         rest_copy(bpy, obj).color = color

@@ -3,6 +3,7 @@ folder and enabled, before any test imports bpy. Run through `make test-blender`
 import os
 import pathlib
 import sys
+import tempfile
 
 import pytest
 
@@ -31,4 +32,8 @@ def empty_scene(tmp_path):
     """Every test starts from an empty, unsaved file."""
     bpy.ops.wm.read_homefile(use_empty=True)
     EXTENSION.bridge.bodies.stats.clear()
+    EXTENSION.bridge.bodies._MEMORY.clear()
+    # Unsaved files cache in the temp folder: give each test its own.
+    (tmp_path / "tmp").mkdir()
+    tempfile.tempdir = str(tmp_path / "tmp")
     yield

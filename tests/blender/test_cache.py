@@ -87,3 +87,5 @@ def test_unsaved_file_uses_the_temp_folder(ext):
     assert bpy.data.filepath == ""
     import tempfile
     assert ext.bridge.bodies.cache_dirs() == [os.path.join(tempfile.gettempdir(), "rs_elastic_cache")]
+    prepare_bar(ext)
+    assert sorted(os.listdir(ext.bridge.bodies.cache_dirs()[0])) == ["Bar.modes.npz", "Bar.tets.npz"]

@@ -89,3 +89,19 @@ def test_stiffer_material_scales_frequencies_by_sqrt(ext):
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     f2 = np.array(obj.rs_elastic.frequencies)
     np.testing.assert_allclose(f2, 2.0 * f1, rtol=1e-6)
+
+
+def test_show_tets_overlay_draws_every_edge_and_leaves_the_mesh_alone(ext):
+    from blender_helpers import fingerprint
+    obj = make_bar()
+    obj.rs_elastic.edge_length = 0.1
+    assert bpy.ops.rs_elastic.tetrahedralize() == {'FINISHED'}
+    before = fingerprint(obj)
+    obj.rs_elastic.show_tets = True
+    assert fingerprint(obj) == before
+    tets = ext.bridge.bodies.load_tet_body(obj).tets
+    edges = ext.bridge.tet_overlay._tet_edges(tets)
+    faces = np.unique(np.sort(tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3),
+                              axis=1), axis=0)
+    # Euler characteristic of a solid ball: nodes - edges + faces - tets = 1.
+    assert obj.rs_elastic.tet_node_count - len(edges) + len(faces) - len(tets) == 1

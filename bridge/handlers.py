@@ -1,0 +1,23 @@
+"""Application handlers: keep each body's cache next to the .blend it belongs to."""
+import bpy
+from bpy.app.handlers import persistent
+
+from . import bodies
+
+
+@persistent
+def _move_cache_after_save(*_args):
+    # A file saved under a new name gets its own blendcache folder; copy the prepared stages
+    # there so reopening it reuses them.
+    for obj in bpy.data.objects:
+        if obj.type == 'MESH' and obj.rs_elastic.tets_key:
+            bodies.persist(obj)
+
+
+def register():
+    bpy.app.handlers.save_post.append(_move_cache_after_save)
+
+
+def unregister():
+    if _move_cache_after_save in bpy.app.handlers.save_post:
+        bpy.app.handlers.save_post.remove(_move_cache_after_save)

@@ -1,0 +1,80 @@
+"""Panels draw without error and show what the issue promises (background mode never draws them,
+so they are drawn here into a recording layout that checks every property it is given)."""
+import bpy
+
+from blender_helpers import make_bar
+
+
+class RecordingLayout:
+    """Stands in for bpy.types.UILayout: records labels, checks properties exist."""
+
+    def __init__(self, log):
+        self.log = log
+        self.use_property_split = False
+        self.active = True
+
+    def _child(self, *args, **kwargs):
+        return RecordingLayout(self.log)
+
+    row = column = box = split = _child
+
+    def label(self, text="", icon='NONE'):
+        self.log.append(("label", text))
+
+    def prop(self, data, name, **kwargs):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name}"
+        self.log.append(("prop", name))
+
+    def prop_search(self, data, name, search_data, search_name, **kwargs):
+        assert name in data.bl_rna.properties
+        assert search_name in search_data.bl_rna.properties
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kwargs):
+        module, name = idname.split(".")
+        assert hasattr(getattr(bpy.ops, module), name), idname
+        self.log.append(("operator", idname))
+
+    def menu(self, idname, **kwargs):
+        assert hasattr(bpy.types, idname), idname
+        self.log.append(("menu", idname))
+
+    def template_list(self, list_type, list_id, data, name, active_data, active_name, **kwargs):
+        assert hasattr(bpy.types, list_type)
+        assert name in data.bl_rna.properties and active_name in active_data.bl_rna.properties
+        self.log.append(("list", name))
+
+
+def draw_all():
+    log = []
+    for cls in bpy.types.Panel.__subclasses__():
+        if not cls.__name__.startswith("RS_ELASTIC_PT"):
+            continue
+        panel = type("Fake", (), {"layout": RecordingLayout(log)})()
+        if cls.poll(bpy.context):
+            if hasattr(cls, "draw_header"):
+                cls.draw_header(panel, bpy.context)
+            cls.draw(panel, bpy.context)
+    return log
+
+
+def test_panels_show_counts_frequencies_and_mnf(ext):
+    obj = make_bar()
+    obj.rs_elastic.edge_length = 0.1
+    obj.rs_elastic.num_modes = 3
+    before = draw_all()
+    assert ("operator", "rs_elastic.prepare") in before
+    assert ("operator", "rs_elastic.tetrahedralize") in before
+    assert ("label", "Not prepared") in before
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    after = draw_all()
+    s = obj.rs_elastic
+    assert ("label", f"{s.tet_node_count:,} nodes, {s.tet_count:,} tets") in after
+    assert ("label", f"MNF {s.mnf:.4g} rad/s") in after
+    assert ("list", "mode_results") in after
+    assert ("prop", "show_tets") in after and ("prop", "preview_amplitude") in after
+
+
+def test_panel_without_a_mesh_says_so(ext):
+    bpy.ops.object.camera_add()
+    assert ("label", "Select a mesh object") in draw_all()
