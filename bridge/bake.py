@@ -1,0 +1,107 @@
+"""Shape-key output: sets of named keys, and baked animations (one key per frame).
+
+A baked animation is the form every RS Elastic bake takes: key `RS Bake 0042` holds frame 42's
+pose and is keyed 0 on frame 41, 1 on frame 42 and 0 on frame 43, with constant interpolation, so
+scrubbing plays the bake. Baking again replaces the previous bake (its keys and their F-curves);
+the user's own shape keys and keyframes are never touched.
+"""
+import numpy as np
+
+BAKE_PREFIX = "RS Bake "
+
+
+def bake_key_name(frame):
+    return f"{BAKE_PREFIX}{frame:04d}"
+
+
+def _ensure_basis(obj):
+    if obj.data.shape_keys is None:
+        obj.shape_key_add(name="Basis", from_mix=False)
+
+
+def _set_positions(key_block, positions):
+    key_block.data.foreach_set("co", np.asarray(positions, dtype=np.float32).ravel())
+
+
+def replace_key_set(obj, prefix, names, positions):
+    """Remove the keys whose name starts with `prefix`, then add one key per (name, positions)."""
+    remove_keys(obj, prefix)
+    _ensure_basis(obj)
+    for name, pose in zip(names, positions):
+        key = obj.shape_key_add(name=name, from_mix=False)
+        _set_positions(key, pose)
+        key.value = 0.0
+    obj.data.update()
+
+
+def write_bake(obj, frames, positions):
+    """Replace the object's bake with one key per frame. positions: (F, n, 3) base-vertex poses."""
+    clear_bake(obj)
+    _ensure_basis(obj)
+    keys = obj.data.shape_keys
+    for frame, pose in zip(frames, positions):
+        key = obj.shape_key_add(name=bake_key_name(frame), from_mix=False)
+        _set_positions(key, pose)
+        key.value = 0.0
+    fcurves = _fcurves(keys, create=True)
+    for frame in frames:
+        curve = fcurves.new(f'key_blocks["{bake_key_name(frame)}"].value', index=0)
+        curve.keyframe_points.add(3)
+        curve.keyframe_points.foreach_set(
+            "co", np.array([frame - 1, 0.0, frame, 1.0, frame + 1, 0.0], dtype=np.float32))
+        for point in curve.keyframe_points:
+            point.interpolation = 'CONSTANT'
+        curve.update()
+    obj.data.update()
+
+
+def clear_bake(obj):
+    """Remove the bake's keys and F-curves. Returns how many keys were removed."""
+    return remove_keys(obj, BAKE_PREFIX)
+
+
+def bake_frames(obj):
+    """Sorted frames of the object's current bake (empty if none)."""
+    keys = obj.data.shape_keys
+    if keys is None:
+        return []
+    return sorted(int(k.name[len(BAKE_PREFIX):]) for k in keys.key_blocks
+                  if k.name.startswith(BAKE_PREFIX) and k.name[len(BAKE_PREFIX):].isdigit())
+
+
+def remove_keys(obj, prefix):
+    keys = obj.data.shape_keys
+    if keys is None:
+        return 0
+    doomed = [k for k in keys.key_blocks if k.name.startswith(prefix)]
+    fcurves = _fcurves(keys, create=False)
+    if fcurves is not None:
+        names = {f'key_blocks["{k.name}"].value' for k in doomed}
+        for curve in [c for c in fcurves if c.data_path in names]:
+            fcurves.remove(curve)
+    for key in doomed:
+        obj.shape_key_remove(key)
+    return len(doomed)
+
+
+def _fcurves(keys, create):
+    """The F-curve collection animating a shape-key datablock (Blender 4.2 to 5.x)."""
+    anim = keys.animation_data
+    if anim is None or anim.action is None:
+        if not create:
+            return None
+        import bpy
+        anim = keys.animation_data_create()
+        anim.action = bpy.data.actions.new(f"{keys.user.name} RS Bake")
+    action = anim.action
+    if hasattr(action, "fcurves") and not hasattr(action, "layers"):
+        return action.fcurves                          # Blender < 4.4: legacy actions
+    from bpy_extras import anim_utils
+    if anim.action_slot is None:
+        if not create:
+            return None
+        anim.action_slot = action.slots.new(id_type='KEY', name=keys.name)
+    if create:
+        return anim_utils.action_ensure_channelbag_for_slot(action, anim.action_slot).fcurves
+    bag = anim_utils.action_get_channelbag_for_slot(action, anim.action_slot)
+    return None if bag is None else bag.fcurves

@@ -1,0 +1,69 @@
+"""Carry a pose of the render mesh over to the tet nodes.
+
+A shape key moves the render vertices p (n, 3); RS coordinates need the tet nodes' positions
+x (N, 3). The nodes are found by least squares
+
+    x = argmin  β ‖Φ x − p‖²  +  Σ_{tets e,f sharing a face} w_ef ‖∇x|_e − ∇x|_f‖²
+
+The second term penalises jumps of the deformation gradient across faces. It vanishes for every
+affine map, so rest poses, rigid motions and uniform stretches carry over exactly; a general pose
+carries over as the smoothest piecewise-linear field that fits the vertices. β is large, so the
+vertices are matched as closely as the tet mesh can. Each coordinate is an independent scalar
+problem with the same matrix: it is factored once.
+"""
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import fem
+
+FIT_WEIGHT = 1e6   # β relative to the smoothness term's scale
+
+
+def face_adjacent_pairs(T):
+    """(P, 2) int pairs of tets that share a face, from (E, 4) tets."""
+    local_faces = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    faces = np.sort(T[:, local_faces].reshape(-1, 3), axis=1)          # (4E, 3)
+    owner = np.repeat(np.arange(len(T)), 4)
+    order = np.lexsort(faces.T[::-1])
+    faces, owner = faces[order], owner[order]
+    same = np.all(faces[1:] == faces[:-1], axis=1)                     # interior faces appear twice
+    return np.stack([owner[:-1][same], owner[1:][same]], axis=1)
+
+
+def scalar_gradient_operator(X, T):
+    """Sparse D (3E, N): (D @ f)[3e + j] = ∂f/∂X_j on tet e for a nodal scalar field f."""
+    grads = fem.shape_gradients(X, T)                                  # (E, 4, 3)
+    e, k, j = np.meshgrid(np.arange(len(T)), np.arange(4), np.arange(3), indexing="ij")
+    return sp.csr_matrix((grads[e, k, j].ravel(), ((3 * e + j).ravel(), T[e, k].ravel())),
+                         shape=(3 * len(T), len(X)))
+
+
+class PoseTransfer:
+    """Positions of the tet nodes from positions of embedded points.
+
+    X (N, 3), T (E, 4): the tet mesh; Phi (n, N) sparse: the embedding (points = Phi @ nodes).
+    """
+
+    def __init__(self, X, T, Phi):
+        pairs = face_adjacent_pairs(T)
+        volumes = np.abs(fem.tet_volumes(X, T))
+        weights = np.repeat(0.5 * (volumes[pairs[:, 0]] + volumes[pairs[:, 1]]), 3)
+        rows = np.arange(len(pairs))
+        jump = sp.csr_matrix((np.r_[np.ones(len(pairs)), -np.ones(len(pairs))],
+                              (np.r_[rows, rows], np.r_[pairs[:, 0], pairs[:, 1]])),
+                             shape=(len(pairs), len(T)))
+        J = sp.kron(jump, sp.identity(3)) @ scalar_gradient_operator(X, T)   # (3P, N)
+        smooth = (J.T @ sp.diags(weights) @ J).tocsc()
+        fit = (Phi.T @ Phi).tocsc()
+        self.beta = FIT_WEIGHT * smooth.diagonal().mean() / max(fit.diagonal().mean(), 1e-300)
+        # A whisper of identity keeps the matrix definite if the points leave an affine map free.
+        tiny = 1e-12 * smooth.diagonal().mean()
+        A = self.beta * fit + smooth + tiny * sp.identity(len(X), format="csc")
+        self._solve = spla.factorized(A.tocsc())
+        self._Phi = Phi
+
+    def nodes_from_points(self, points):
+        """(N, 3) node positions whose embedding best matches `points` (n, 3)."""
+        rhs = self.beta * (self._Phi.T @ np.asarray(points, dtype=np.float64))
+        return np.column_stack([self._solve(np.ascontiguousarray(rhs[:, i])) for i in range(3)])
