@@ -35,7 +35,10 @@ def replace_key_set(obj, prefix, names, positions):
 
 
 def write_bake(obj, frames, positions):
-    """Replace the object's bake with one key per frame. positions: (F, n, 3) base-vertex poses."""
+    """Replace the object's bake with one key per frame. positions: (F, n, 3) base-vertex poses.
+
+    Returns the names of the user's keys whose value is not 0: they add on top of the bake.
+    """
     clear_bake(obj)
     _ensure_basis(obj)
     keys = obj.data.shape_keys
@@ -53,6 +56,8 @@ def write_bake(obj, frames, positions):
             point.interpolation = 'CONSTANT'
         curve.update()
     obj.data.update()
+    return [k.name for k in keys.key_blocks
+            if k != keys.reference_key and not k.name.startswith(BAKE_PREFIX) and k.value != 0.0]
 
 
 def clear_bake(obj):

@@ -1,12 +1,16 @@
 """Live mode preview as a temporary shape key.
 
+Linear: the rest pose plus the scaled mode, X + s·w. RS: the same modal coordinate sent through
+rotation-strain coordinates and reconstructed, Ψ(s·Q w), which curls where the linear mode
+stretches. The scale s makes the linear mode's largest displacement the chosen amplitude.
+
 The preview owns one shape key, named PREVIEW_KEY, and the Basis key if the mesh had none. Turning
 the preview off removes exactly those, so the mesh is left as it was; the base vertices are never
 written.
 """
 import numpy as np
 
-from . import bodies, scene
+from . import rs_tools, scene
 
 PREVIEW_KEY = "RS Elastic Preview"
 
@@ -19,24 +23,29 @@ def refresh(obj):
         hide(obj)
 
 
-def preview_positions(obj, body):
-    """(n, 3) base-vertex positions for the selected mode and amplitude."""
+def preview_positions(obj, tools):
+    """(n, 3) base-vertex positions for the selected mode, amplitude and method."""
     settings = obj.rs_elastic
     rest = scene.base_vertices(obj)
-    count = body.linear_modes.vectors.shape[1]
-    u = body.surface_mode(min(settings.preview_mode, count) - 1)
-    peak = np.linalg.norm(u, axis=1).max()
-    diagonal = np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))
+    modes = tools.body.linear_modes
+    index = min(settings.preview_mode, modes.vectors.shape[1]) - 1
+    linear = tools.surface(modes.vectors[:, index].reshape(-1, 3))
+    peak = np.linalg.norm(linear, axis=1).max()
     if peak == 0.0:
         return rest
-    return rest + u * (settings.preview_amplitude * diagonal / peak)
+    diagonal = np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))
+    scale = settings.preview_amplitude * diagonal / peak
+    if settings.preview_method == 'LINEAR':
+        return rest + scale * linear
+    y = tools.modal_rs[:, :, index] * scale
+    return rest + tools.surface(tools.reconstruction.reconstruct(y))
 
 
 def show(obj):
-    body = bodies.load_prepared(obj)
-    if body is None or body.tet_body.embedding.shape[0] != len(obj.data.vertices):
+    tools = rs_tools.for_object(obj)
+    if tools is None:
         return False  # not prepared for this mesh; the panel says so
-    positions = preview_positions(obj, body)
+    positions = preview_positions(obj, tools)
     key = _preview_key(obj)
     if key is None:
         if obj.data.shape_keys is None:

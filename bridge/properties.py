@@ -66,6 +66,13 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     preview_enabled: BoolProperty(
         name="Preview Mode", default=False, update=_preview_changed,
         description="Show the body displaced along one mode (a temporary shape key, removed when off)")
+    preview_method: EnumProperty(
+        name="Method", update=_preview_changed,
+        items=[('LINEAR', "Linear", "Rest pose plus the scaled mode: stretches at large amplitude"),
+               ('RS', "RS", "The mode warped through rotation-strain coordinates: bends and "
+                            "curls without inflating")],
+        default='RS',
+        description="How the mode is turned into a pose")
     preview_mode: IntProperty(name="Mode", default=1, min=1, update=_preview_changed,
                               description="Which mode to show (1 = lowest frequency)")
     preview_amplitude: FloatProperty(

@@ -18,6 +18,7 @@ class RS_ELASTIC_PT_preview(RSElasticPanel, bpy.types.Panel):
         layout = self.layout
         layout.use_property_split = True
         layout.active = settings.preview_enabled
+        layout.prop(settings, "preview_method", expand=True)
         layout.prop(settings, "preview_mode")
         layout.prop(settings, "preview_amplitude", slider=True)
         if settings.preview_enabled and not preview.is_shown(obj):

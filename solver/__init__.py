@@ -6,6 +6,8 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``modes``    linear modal analysis (K w = lambda M w), free or pinned bodies.
 - ``embed``    barycentric embedding of render-mesh vertices in the tet mesh (sparse Phi).
 - ``tetmesh``  fTetWild tetrahedralisation, run in a separate process so a crash cannot kill Blender.
+- ``rs``       rotation-strain coordinates: Q, polar/log/exp, Jacobians, Poisson reconstruction Ψ.
+- ``transfer`` carries a pose of the render mesh over to the tet nodes.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
 

@@ -68,6 +68,16 @@ def gradient_operator(X, T):
     return G.tocsr()
 
 
+def scalar_gradient_operator(X, T):
+    """Sparse D (3E, N), csr: (D @ f)[3e + j] = d f / d X_j on tet e for nodal scalars f."""
+    T = np.asarray(T, dtype=np.int64)
+    grads = shape_gradients(X, T)                             # (E, 4, 3)
+    rows = np.broadcast_to(3 * np.arange(len(T))[:, None, None] + np.arange(3), grads.shape)
+    cols = np.broadcast_to(T[:, :, None], grads.shape)
+    return sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(3 * len(T), len(X)))
+
+
 def lame_parameters(youngs, poisson):
     """Lame parameters (mu, lam) in Pa from Young's modulus [Pa] and Poisson's ratio [-].
 

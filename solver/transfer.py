@@ -15,28 +15,18 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import fem
+from . import fem, rs
 
 FIT_WEIGHT = 1e6   # β relative to the smoothness term's scale
 
 
 def face_adjacent_pairs(T):
-    """(P, 2) int pairs of tets that share a face, from (E, 4) tets."""
-    local_faces = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    faces = np.sort(T[:, local_faces].reshape(-1, 3), axis=1)          # (4E, 3)
-    owner = np.repeat(np.arange(len(T)), 4)
-    order = np.lexsort(faces.T[::-1])
-    faces, owner = faces[order], owner[order]
-    same = np.all(faces[1:] == faces[:-1], axis=1)                     # interior faces appear twice
-    return np.stack([owner[:-1][same], owner[1:][same]], axis=1)
-
-
-def scalar_gradient_operator(X, T):
-    """Sparse D (3E, N): (D @ f)[3e + j] = ∂f/∂X_j on tet e for a nodal scalar field f."""
-    grads = fem.shape_gradients(X, T)                                  # (E, 4, 3)
-    e, k, j = np.meshgrid(np.arange(len(T)), np.arange(4), np.arange(3), indexing="ij")
-    return sp.csr_matrix((grads[e, k, j].ravel(), ((3 * e + j).ravel(), T[e, k].ravel())),
-                         shape=(3 * len(T), len(X)))
+    """(P, 2) int pairs (e, f), e < f, of tets that share a face, from (E, 4) tets."""
+    neighbours = rs.tet_neighbours(T)                                   # (E, 4), -1 on the boundary
+    e = np.repeat(np.arange(len(T)), 4)
+    f = neighbours.ravel()
+    keep = f > e
+    return np.stack([e[keep], f[keep]], axis=1)
 
 
 class PoseTransfer:
@@ -53,7 +43,7 @@ class PoseTransfer:
         jump = sp.csr_matrix((np.r_[np.ones(len(pairs)), -np.ones(len(pairs))],
                               (np.r_[rows, rows], np.r_[pairs[:, 0], pairs[:, 1]])),
                              shape=(len(pairs), len(T)))
-        J = sp.kron(jump, sp.identity(3)) @ scalar_gradient_operator(X, T)   # (3P, N)
+        J = sp.kron(jump, sp.identity(3)) @ fem.scalar_gradient_operator(X, T)   # (3P, N)
         smooth = (J.T @ sp.diags(weights) @ J).tocsc()
         fit = (Phi.T @ Phi).tocsc()
         self.beta = FIT_WEIGHT * smooth.diagonal().mean() / max(fit.diagonal().mean(), 1e-300)

@@ -1,8 +1,9 @@
 """`make demo`: build a scene from nothing, prepare it with the installed extension, save it and
 render a picture.
 
-Scene: a rubber bar pinned at one end and a free rubber Suzanne. The top row of the picture shows
-them at rest, the bottom row shows each displaced along its first mode (the Mode Preview).
+Scene: a rubber bar pinned at one end and a free rubber Suzanne, each shown in three rows: at rest,
+displaced along its first mode by the linear preview (which stretches and inflates), and by the
+RS preview at the same amplitude (which bends and keeps its volume).
 Writes <output>/demo.blend and <output>/demo.png.
 """
 import argparse
@@ -13,7 +14,7 @@ import sys
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import blender_session  # noqa: E402
 
-ROW_GAP = 3.2   # metres between the rest row and the mode row
+ROW_GAP = 3.4   # metres between the rows
 
 
 def parse_args():
@@ -63,12 +64,12 @@ def prepare(bpy, obj, edge_length, amplitude):
     print(f"demo: {obj.name}: {obj.rs_elastic.tet_count} tets, modes {f[0]:.2f} … {f[-1]:.2f} Hz")
 
 
-def rest_copy(bpy, obj):
-    """A copy at rest one row up, with its own mesh so the preview key stays on the original."""
+def row_copy(bpy, obj, label, row):
+    """A copy `row` rows up, with its own mesh so each row's preview key is its own."""
     copy = obj.copy()
     copy.data = obj.data.copy()
-    copy.name = obj.name + " (rest)"
-    copy.location.z += ROW_GAP
+    copy.name = f"{obj.name} ({label})"
+    copy.location.z += row * ROW_GAP
     bpy.context.scene.collection.objects.link(copy)
     return copy
 
@@ -87,7 +88,7 @@ def add_label(bpy, text, location, size=0.45):
 
 def stage(bpy, output):
     scene = bpy.context.scene
-    bpy.ops.object.camera_add(location=(0.0, -16.0, 1.3), rotation=(1.5708, 0.0, 0.0))
+    bpy.ops.object.camera_add(location=(0.0, -21.0, ROW_GAP), rotation=(1.5708, 0.0, 0.0))
     scene.camera = bpy.context.active_object
     scene.camera.data.lens = 32
     scene.render.engine = 'BLENDER_WORKBENCH'
@@ -115,18 +116,23 @@ def main():
     bpy.ops.wm.save_as_mainfile(filepath=str(output / "demo.blend"))  # cache goes next to it
     bar = make_bar(bpy, np)
     suzanne = make_suzanne(bpy)
-    prepare(bpy, bar, edge_length=0.03, amplitude=0.12)
-    prepare(bpy, suzanne, edge_length=0.05, amplitude=0.12)
+    # Large amplitudes: the bar's linear tip displacement is about 4× its thickness.
+    prepare(bpy, bar, edge_length=0.03, amplitude=0.5)
+    prepare(bpy, suzanne, edge_length=0.05, amplitude=0.25)
 
     for obj, color in ((bar, (0.85, 0.35, 0.2, 1.0)), (suzanne, (0.3, 0.55, 0.85, 1.0))):
-        rest_copy(bpy, obj).color = color
         obj.color = color
         obj.rs_elastic.preview_mode = 1
-        obj.rs_elastic.preview_enabled = True
-    add_label(bpy, "rest", (-6.8, 0.0, ROW_GAP + 0.9))
-    add_label(bpy, "mode 1", (-6.8, 0.0, 0.9))
+        rest = row_copy(bpy, obj, "rest", 2)
+        linear = row_copy(bpy, obj, "linear", 1)
+        for copy, method in ((linear, 'LINEAR'), (obj, 'RS')):
+            bpy.context.view_layer.objects.active = copy
+            copy.rs_elastic.preview_method = method
+            copy.rs_elastic.preview_enabled = True
+    for text, row in (("rest", 2), ("linear mode 1", 1), ("RS mode 1", 0)):
+        add_label(bpy, text, (-8.2, 0.0, row * ROW_GAP + 0.9))
     for obj, x in ((bar, -2.5), (suzanne, 3.0)):
-        add_label(bpy, f"{obj.name}: {obj.rs_elastic.frequencies[0]:.2f} Hz", (x, 0.0, -1.6), 0.35)
+        add_label(bpy, f"{obj.name}: {obj.rs_elastic.frequencies[0]:.2f} Hz", (x, 0.0, -2.4), 0.35)
     stage(bpy, output)
     bpy.ops.render.render(write_still=True)
     bpy.ops.wm.save_mainfile()

@@ -25,14 +25,14 @@ def make_active(obj):
     obj.select_set(True)
 
 
-def make_bar(name="Bar", length=4.0, width=1.0, pin_end=True):
-    """A box `length` × `width` × `width` along +x from the origin, its faces subdivided once
+def make_bar(name="Bar", length=4.0, width=1.0, pin_end=True, cuts=1):
+    """A box `length` × `width` × `width` along +x from the origin, its faces subdivided by `cuts`
     so that the pin group (all vertices at x = 0) holds a whole end face."""
     bpy.ops.mesh.primitive_cube_add(size=1.0)
     obj = bpy.context.active_object
     obj.name = name
     bpy.ops.object.mode_set(mode='EDIT')
-    bpy.ops.mesh.subdivide(number_cuts=1)
+    bpy.ops.mesh.subdivide(number_cuts=cuts)
     bpy.ops.object.mode_set(mode='OBJECT')
     co = np.empty(len(obj.data.vertices) * 3)
     obj.data.vertices.foreach_get("co", co)
@@ -104,3 +104,14 @@ def fingerprint(obj):
 
 def diagonal(points):
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def closed_volume(obj, positions):
+    """Volume enclosed by the object's (closed) polygons at the given vertex positions."""
+    total = 0.0
+    for polygon in obj.data.polygons:
+        idx = list(polygon.vertices)
+        a = positions[idx[0]]
+        for b, c in zip(positions[idx[1:-1]], positions[idx[2:]]):
+            total += np.dot(a, np.cross(b, c)) / 6.0
+    return total

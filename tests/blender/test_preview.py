@@ -18,6 +18,7 @@ def test_preview_shows_the_scaled_mode_and_leaves_no_trace(ext):
     rest = vertices(obj)
     before = fingerprint(obj)
     settings = obj.rs_elastic
+    settings.preview_method = 'LINEAR'
     settings.preview_mode = 2
     settings.preview_amplitude = 0.2
     settings.preview_enabled = True
