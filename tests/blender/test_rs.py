@@ -140,3 +140,19 @@ def test_interpolation_refuses_bad_input_and_changes_nothing(ext):
         with pytest.raises(RuntimeError, match=match):
             bpy.ops.rs_elastic.interpolate_shape_keys(**kwargs)
         assert fingerprint(obj) == before
+
+
+def test_inverted_input_is_flagged_and_gives_finite_poses(ext, capfd):
+    obj = prepared_bar(pin_end=False, cuts=3, edge_length=0.1, num_modes=3)
+    rest = vertices(obj)
+    obj.shape_key_add(name="Basis")
+    squashed = rest.copy()
+    squashed[:, 2] = 1.0 - squashed[:, 2]        # mirrored through z = 0.5: every tet inverts
+    key = obj.shape_key_add(name="Mirrored")
+    key.data.foreach_set("co", squashed.astype(np.float32).ravel())
+    key.value = 0.0
+    assert bpy.ops.rs_elastic.interpolate_shape_keys(key_from="Basis", key_to="Mirrored", count=2) \
+        == {'FINISHED'}
+    assert "tets are inverted" in capfd.readouterr().out
+    for name in ("RS Basis → Mirrored 01", "RS Basis → Mirrored 02"):
+        assert np.all(np.isfinite(key_co(obj, name)))
