@@ -7,6 +7,8 @@ the user's own shape keys and keyframes are never touched.
 """
 import numpy as np
 
+from .animation import fcurves as _fcurves
+
 BAKE_PREFIX = "RS Bake "
 
 
@@ -87,26 +89,3 @@ def remove_keys(obj, prefix):
     for key in doomed:
         obj.shape_key_remove(key)
     return len(doomed)
-
-
-def _fcurves(keys, create):
-    """The F-curve collection animating a shape-key datablock (Blender 4.2 to 5.x)."""
-    anim = keys.animation_data
-    if anim is None or anim.action is None:
-        if not create:
-            return None
-        import bpy
-        anim = keys.animation_data_create()
-        anim.action = bpy.data.actions.new(f"{keys.user.name} RS Bake")
-    action = anim.action
-    if hasattr(action, "fcurves") and not hasattr(action, "layers"):
-        return action.fcurves                          # Blender < 4.4: legacy actions
-    from bpy_extras import anim_utils
-    if anim.action_slot is None:
-        if not create:
-            return None
-        anim.action_slot = action.slots.new(id_type='KEY', name=keys.name)
-    if create:
-        return anim_utils.action_ensure_channelbag_for_slot(action, anim.action_slot).fcurves
-    bag = anim_utils.action_get_channelbag_for_slot(action, anim.action_slot)
-    return None if bag is None else bag.fcurves

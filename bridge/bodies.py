@@ -2,9 +2,11 @@
 
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
 Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
-Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.npz` (the temp folder for an
-unsaved file), under a key that hashes everything the stage depends on: a stale file is rebuilt,
-never used; an unreadable one is reported and rebuilt.
+Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.<key>.npz` (the temp folder for
+an unsaved file). The key hashes everything the stage depends on, so a stale file is never used,
+and a new preparation writes new files beside the old ones: an unfinished or cancelled one leaves
+the previous cache usable. Files of keys the object no longer uses are pruned once a preparation
+is applied. An unreadable file is reported and rebuilt.
 """
 import collections
 import dataclasses
@@ -78,9 +80,36 @@ def cache_dirs():
     return [os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}"), temp]
 
 
-def cache_file(folder, object_name, stage):
-    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", object_name)
-    return os.path.join(folder, f"{safe}.{stage}.npz")
+def _safe_name(object_name):
+    return re.sub(r"[^A-Za-z0-9_-]", "_", object_name)
+
+
+def cache_file(folder, object_name, stage, key):
+    return os.path.join(folder, f"{_safe_name(object_name)}.{stage}.{key[:16]}.npz")
+
+
+def prune(obj):
+    """Delete the object's cache files whose key it no longer uses (in its primary folder)."""
+    settings = obj.rs_elastic
+    keep = {cache_file(cache_dirs()[0], obj.name, stage, key)
+            for stage, key in _stage_keys(settings) if key}
+    folder = cache_dirs()[0]
+    pattern = re.compile(re.escape(_safe_name(obj.name)) + r"\.(tets|modes|reduced)\.[0-9a-f]+\.npz$")
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for name in names:
+        path = os.path.join(folder, name)
+        if pattern.match(name) and path not in keep:
+            try:
+                os.remove(path)
+            except OSError:
+                pass
+
+
+def _stage_keys(settings):
+    return (("tets", settings.tets_key), ("modes", settings.prepared_key))
 
 
 # --- inputs, read on the main thread ----------------------------------------------------------------
@@ -159,7 +188,7 @@ def _remember(key, value):
 def _load_cached(inputs, stage, key, job):
     """Arrays of a valid cache file for this key, or None. Corrupt files are reported and removed."""
     for folder in inputs.cache_dirs:
-        path = cache_file(folder, inputs.object_name, stage)
+        path = cache_file(folder, inputs.object_name, stage, key)
         try:
             arrays = cache.load(path, key)
         except cache.CacheCorrupt as exc:
@@ -176,7 +205,7 @@ def _load_cached(inputs, stage, key, job):
 
 
 def _save_cached(inputs, stage, key, arrays, job):
-    path = cache_file(inputs.cache_dirs[0], inputs.object_name, stage)
+    path = cache_file(inputs.cache_dirs[0], inputs.object_name, stage, key)
     try:
         cache.save(path, key, arrays)
     except OSError as exc:
@@ -264,11 +293,12 @@ def load_prepared(obj):
 def persist(obj):
     """Make sure the object's prepared stages are in its primary cache folder (after a file is
     saved under a new name its cache moves next to it)."""
-    settings = obj.rs_elastic
     folder = cache_dirs()[0]
-    for stage, key in (("tets", settings.tets_key), ("modes", settings.prepared_key)):
-        path = cache_file(folder, obj.name, stage)
-        if not key or cache.stored_key(path) == key:
+    for stage, key in _stage_keys(obj.rs_elastic):
+        if not key:
+            continue
+        path = cache_file(folder, obj.name, stage, key)
+        if cache.stored_key(path) == key:
             continue
         value = _load_stage(obj, stage, key)
         if value is None:
@@ -291,7 +321,7 @@ def _load_stage(obj, stage, key):
         return _MEMORY[key]
     for folder in cache_dirs():
         try:
-            arrays = cache.load(cache_file(folder, obj.name, stage), key)
+            arrays = cache.load(cache_file(folder, obj.name, stage, key), key)
         except cache.CacheCorrupt:
             continue
         if arrays is not None:

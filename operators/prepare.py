@@ -29,6 +29,7 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         if settings.preview_enabled:
             preview.show(obj)
         bodies.persist(obj)
+        bodies.prune(obj)
         tet_overlay.tag_redraw(context)
         f = body.linear_modes.frequencies_hz
         self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz")

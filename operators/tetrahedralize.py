@@ -28,6 +28,7 @@ class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
         settings.tet_node_count = len(tet_body.nodes)
         settings.tet_count = len(tet_body.tets)
         bodies.persist(obj)
+        bodies.prune(obj)
         tet_overlay.tag_redraw(context)
         self.report({'INFO'}, f"'{obj.name}': {settings.tet_node_count} nodes, "
                               f"{settings.tet_count} tets")

@@ -43,7 +43,9 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
     assert ext.bridge.bodies.stats["modes"] == 1
     folder = tmp_path / "blendcache_shot"
     files = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
-    assert set(files) == {"Bar.tets.npz", "Bar.modes.npz"}
+    settings = obj.rs_elastic
+    assert set(files) == {f"Bar.tets.{settings.tets_key[:16]}.npz",
+                          f"Bar.modes.{settings.prepared_key[:16]}.npz"}
     bpy.ops.wm.save_mainfile()
 
     script = REOPEN_SCRIPT.format(tools=str(ROOT / "tools"), user_dir=USER_DIR, blend=str(blend))
@@ -74,7 +76,8 @@ def test_stale_cache_is_rebuilt_per_stage(ext):
 def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
     obj = prepare_bar(ext)
     before = np.array(obj.rs_elastic.frequencies)
-    path = pathlib.Path(ext.bridge.bodies.cache_file(ext.bridge.bodies.cache_dirs()[0], "Bar", "modes"))
+    path = pathlib.Path(ext.bridge.bodies.cache_file(ext.bridge.bodies.cache_dirs()[0], "Bar", "modes",
+                                                     obj.rs_elastic.prepared_key))
     path.write_bytes(b"this is not a cache file")
     ext.bridge.bodies._MEMORY.clear()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
@@ -87,5 +90,17 @@ def test_unsaved_file_uses_the_temp_folder(ext):
     assert bpy.data.filepath == ""
     import tempfile
     assert ext.bridge.bodies.cache_dirs() == [os.path.join(tempfile.gettempdir(), "rs_elastic_cache")]
-    prepare_bar(ext)
-    assert sorted(os.listdir(ext.bridge.bodies.cache_dirs()[0])) == ["Bar.modes.npz", "Bar.tets.npz"]
+    obj = prepare_bar(ext)
+    assert sorted(os.listdir(ext.bridge.bodies.cache_dirs()[0])) == sorted(
+        [f"Bar.modes.{obj.rs_elastic.prepared_key[:16]}.npz",
+         f"Bar.tets.{obj.rs_elastic.tets_key[:16]}.npz"])
+
+
+def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
+    obj = prepare_bar(ext)
+    folder = ext.bridge.bodies.cache_dirs()[0]
+    old = set(os.listdir(folder))
+    obj.rs_elastic.youngs_modulus *= 3
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    new = set(os.listdir(folder))
+    assert len(new) == 2 and len(old & new) == 1      # the tets are shared, the old modes gone

@@ -118,7 +118,7 @@ def test_interpolation_bakes_an_animation_that_plays_when_scrubbed(ext):
         key_from="Bent", key_to="Turned", output='ANIMATION', frame_start=3, frame_end=7) \
         == {'FINISHED'}
     assert ext.bridge.bake.bake_frames(obj) == list(range(3, 8))
-    curves = ext.bridge.bake._fcurves(obj.data.shape_keys, create=False)
+    curves = ext.bridge.animation.fcurves(obj.data.shape_keys)
     assert sorted(c.data_path for c in curves) == sorted(
         f'key_blocks["RS Bake {f:04d}"].value' for f in range(3, 8))
 
