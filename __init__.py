@@ -2,7 +2,7 @@
 import bpy
 
 from . import operators, panels
-from .bridge import handlers, properties, tet_overlay
+from .bridge import cli, handlers, properties, tet_overlay
 
 
 def register():
@@ -11,9 +11,11 @@ def register():
         bpy.utils.register_class(cls)
     tet_overlay.register()
     handlers.register()
+    cli.register()
 
 
 def unregister():
+    cli.unregister()
     handlers.unregister()
     tet_overlay.unregister()
     for cls in reversed(operators.CLASSES + panels.CLASSES):

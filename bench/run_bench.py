@@ -98,6 +98,319 @@ def case_rs_full(size, repeats=5):
 CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes, "rs_full": case_rs_full}
 
 
+def _median_seconds(function, number, repeat=15):
+    """Median over ``repeat`` runs of the mean time of ``number`` calls, in seconds."""
+    import timeit
+    return float(sorted(timeit.repeat(function, number=number, repeat=repeat))[repeat // 2]
+                 / number)
+
+
+def case_reduced_rs(size, num_modes=20, num_held_out=40):
+    """Reduced RS with cubature on the pinned bar of ``rs_full`` (20 modes), default settings.
+
+    Preparation (``reduced.prepare_reduced_rs``: snapshots, basis, cubature) is timed once.
+    Evaluations are medians of many calls for one held-out pose (its largest rotation):
+    the whole surface (rows of B for the boundary nodes, precomputed), 10 surface vertices
+    (folded rows), their Jacobian, and both together; full RS is recon.reconstruct(QW z) with
+    the prefactored Laplacian, timed in the same process. Error: 40 held-out poses (seed not
+    used in training, rotations up to 90 deg, strain <= 100 %), max vertex error / diagonal.
+    """
+    import igl
+    import numpy as np
+    from solver import cubature, fem, meshgen, modes, reduced, rs
+    n = BAR_SIZES[size]
+    X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1100.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    start = time.perf_counter()
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    recon = rs.PoissonReconstruction(X, T, pinned)
+    setup_seconds = time.perf_counter() - start
+    baseline = peak_rss_mb()
+    start = time.perf_counter()
+    deformer, info = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                                recon, modal_rs=modal_rs)
+    prepare_seconds = time.perf_counter() - start
+
+    surface = np.unique(igl.boundary_facets(T)[0])
+    surface_rows = reduced.basis_rows(deformer.basis, surface)
+    few = reduced.basis_rows(deformer.basis, np.random.default_rng(0).choice(surface, 10, False))
+    evaluator = deformer.row_evaluator(few)
+    Z = cubature.training_poses(num_modes, body.eigenvalues, num_held_out,
+                                np.random.default_rng(1234), max_rotation=np.pi / 2,
+                                modal_rs=modal_rs)
+    rotation, _ = cubature.pose_extremes(modal_rs, Z)
+    z = Z[int(np.argmax(rotation))]
+    timings = dict(
+        surface_seconds=_median_seconds(lambda: deformer.displacement(z, rows=surface_rows), 50),
+        few_seconds=_median_seconds(lambda: evaluator.displacement(z), 200),
+        jacobian_seconds=_median_seconds(lambda: evaluator.jacobian(z), 100),
+        few_and_jacobian_seconds=_median_seconds(lambda: evaluator.evaluate(z), 100),
+        full_seconds=_median_seconds(lambda: recon.reconstruct(modal_rs @ z), 1, repeat=9))
+    diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    errors = np.array([np.linalg.norm(deformer.displacement(p) - recon.reconstruct(modal_rs @ p),
+                                      axis=1).max() / diagonal for p in Z])
+    return dict(size=size, nodes=len(X), tets=len(T), num_modes=num_modes,
+                basis_size=deformer.basis_size, cubature_tets=len(deformer.cubature_tets),
+                fit_residual=info["relative_residual"], setup_seconds=setup_seconds,
+                prepare_seconds=prepare_seconds, snapshot_seconds=info["seconds"]["snapshots"],
+                basis_seconds=info["seconds"]["basis"],
+                cubature_seconds=info["seconds"]["cubature"], surface_vertices=len(surface),
+                **timings,
+                speedup_few_and_jacobian=timings["full_seconds"]
+                / timings["few_and_jacobian_seconds"],
+                speedup_surface=timings["full_seconds"] / timings["surface_seconds"],
+                max_rotation_deg=float(np.degrees(rotation.max())),
+                max_error=float(errors.max()), mean_error=float(errors.mean()),
+                peak_rss_mb=peak_rss_mb(), rss_before_mb=baseline)
+
+
+def reduced_rs_table(rows):
+    """Markdown table of ``case_reduced_rs`` rows (times shown in µs / ms, errors in %)."""
+    shown = []
+    for row in rows:
+        if "error" not in row:
+            row = dict(row, full_ms=1e3 * row["full_seconds"], max_error_pct=100 * row["max_error"],
+                       mean_error_pct=100 * row["mean_error"],
+                       **{key + "_us": 1e6 * row[key + "_seconds"]
+                          for key in ("surface", "few", "jacobian", "few_and_jacobian")})
+        shown.append(row)
+    return table(
+        "Reduced RS with cubature (pinned 4:1:1 bar, 20 modes; targets: 10 vertices + Jacobian "
+        ">= 100x faster than full RS at 40k tets, held-out error <= 1 % of the diagonal, "
+        "preparation < 60 s at 40k)", shown,
+        [("size", ("size", "{}")), ("tets", ("tets", "{:,}")), ("rB", ("basis_size", "{}")),
+         ("cubature tets", ("cubature_tets", "{}")), ("prepare s", ("prepare_seconds", "{:.1f}")),
+         ("snapshots s", ("snapshot_seconds", "{:.1f}")), ("basis s", ("basis_seconds", "{:.1f}")),
+         ("cubature s", ("cubature_seconds", "{:.1f}")),
+         ("surface verts", ("surface_vertices", "{:,}")), ("surface µs", ("surface_us", "{:.0f}")),
+         ("10 verts µs", ("few_us", "{:.0f}")), ("Jacobian (10) µs", ("jacobian_us", "{:.0f}")),
+         ("10 verts + Jacobian µs", ("few_and_jacobian_us", "{:.0f}")),
+         ("full RS ms", ("full_ms", "{:.2f}")),
+         ("speed-up 10 + J", ("speedup_few_and_jacobian", "{:.0f}x")),
+         ("speed-up surface", ("speedup_surface", "{:.0f}x")),
+         ("held-out max error %", ("max_error_pct", "{:.2f}")),
+         ("mean error %", ("mean_error_pct", "{:.2f}")),
+         ("max rotation deg", ("max_rotation_deg", "{:.0f}")),
+         ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
+
+
+CASES["reduced_rs"] = case_reduced_rs
+
+
+SPACETIME_MODES = ("10", "20", "40")
+SPACETIME_FRAMES = (100, 200, 400)
+
+
+def case_spacetime(arg):
+    """Space-time solves on the 10k-tet pinned bar with reduced RS; arg "MODES[:F1,F2,...]".
+
+    Deformer: ``reduced.prepare_reduced_rs`` (basis + cubature, timed as setup). Edit: five
+    handles (cross-sections at 1/5 ... 5/5 of the length, centroids) keyed onto the centre line
+    bent into a 45 deg arc at 30 % and a 90 deg arc at 60 % of the range, free afterwards;
+    gamma from ``suggest_weights``, h = 1/24 s. Each frame count is solved with and without
+    material optimisation (default iterations).
+    """
+    import numpy as np
+    from solver import fem, meshgen, modes, reduced, rs, spacetime
+    num_modes, _, frame_text = arg.partition(":")
+    frame_counts = [int(f) for f in frame_text.split(",")] if frame_text else SPACETIME_FRAMES
+    n, length = BAR_SIZES["10k"], 4.0
+    X, T = meshgen.box_tet_mesh((length, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    start = time.perf_counter()
+    masses = fem.lumped_masses(X, T, 1100.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, int(num_modes),
+                              pinned)
+    recon = rs.PoissonReconstruction(X, T, pinned)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
+    setup = time.perf_counter() - start
+    planes = np.unique(X[:, 0])
+    stations = planes[np.searchsorted(planes, length * np.arange(1, 6) / 5.0 - 1e-9)]
+    handles = [spacetime.handle_geometry(X, deformer.basis,
+                                         np.flatnonzero(np.abs(X[:, 0] - s) < 1e-9))
+               for s in stations]
+
+    def arc(s, angle):
+        return np.array([np.sin(angle * s / length), 0.0, np.cos(angle * s / length) - 1.0]
+                        ) * length / angle + [0.0, 0.5, 0.5]
+
+    diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    h = 1.0 / 24.0
+    damping = spacetime.rayleigh_damping(body.eigenvalues, 0.1, 0.002)
+    rows = []
+    for frames in frame_counts:
+        constraints = spacetime.HandleConstraints(
+            frames=np.repeat([round(0.3 * frames), round(0.6 * frames)], 5),
+            rows=[g[0] for g in handles] * 2, rest=[g[1] for g in handles] * 2,
+            targets=[arc(s, a) for a in (np.pi / 4, np.pi / 2) for s in stations], weights=1.0)
+        gamma, _ = spacetime.suggest_weights(h, body.eigenvalues, damping, deformer,
+                                             constraints.rows)
+        problem = spacetime.SpaceTimeProblem(frames, h, body.eigenvalues, damping, deformer,
+                                             handles=constraints, gamma=gamma)
+        for material in (False, True):
+            start = time.perf_counter()
+            result = spacetime.solve(problem, optimise_material=material)
+            rows.append(dict(modes=int(num_modes), frames=frames, handles=5,
+                             material="yes" if material else "no",
+                             seconds=time.perf_counter() - start,
+                             gn_iterations=result.iterations, converged=result.converged,
+                             residual=float(result.handle_residuals.max()) / diagonal,
+                             control_energy=result.control_energy, scheme=problem.scheme,
+                             setup_seconds=setup, basis_size=deformer.basis_size,
+                             cubature_tets=len(deformer.cubature_tets),
+                             peak_rss_mb=peak_rss_mb()))
+    return dict(rows=rows)
+
+
+def spacetime_rows(quick):
+    """Flattened solve rows of every mode count (--quick: 20 modes x 200 frames only)."""
+    args = ["20:200"] if quick else list(SPACETIME_MODES)
+    rows = []
+    for arg in args:
+        out = run_child("spacetime", arg)
+        rows.extend([out] if "error" in out else out["rows"])
+    return rows
+
+
+def spacetime_table(rows):
+    return table(
+        "Space-time editing (10k-tet pinned bar, reduced RS, 5 handles keyed to a 90 deg bend; "
+        "targets: 200 frames x 20 modes < 1 s without material, < 10 s with)", rows,
+        [("modes", ("modes", "{}")), ("frames", ("frames", "{}")),
+         ("material", ("material", "{}")), ("solve s", ("seconds", "{:.2f}")),
+         ("GN steps", ("gn_iterations", "{}")), ("converged", ("converged", "{}")),
+         ("max residual / diagonal", ("residual", "{:.1e}")),
+         ("E_f", ("control_energy", "{:.3e}")), ("scheme", ("scheme", "{}")),
+         ("setup s", ("setup_seconds", "{:.1f}")), ("rB", ("basis_size", "{}")),
+         ("cubature tets", ("cubature_tets", "{}")), ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
+
+
+CASES["spacetime"] = case_spacetime
+
+
+DYNAMICS_MODES = ("10", "20", "40")
+
+
+def _dynamics_body(num_modes):
+    """The 10k-tet pinned 4:1:1 bar of the other cases (E = 1e6 Pa, nu = 0.45, 1100 kg/m^3)."""
+    import numpy as np
+    from solver import fem, meshgen, modes, rs
+    n = BAR_SIZES["10k"]
+    X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1100.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    return X, T, pinned, masses, body, rs.PoissonReconstruction(X, T, pinned)
+
+
+def _steps_per_second(simulation, warm_up, steps):
+    """(steps/s, Newton iterations per step) over ``steps`` after ``warm_up`` untimed steps."""
+    simulation.run(warm_up)
+    start = time.perf_counter()
+    trajectory = simulation.run(steps)
+    seconds = time.perf_counter() - start
+    return steps / seconds, float(trajectory.iterations[1:].mean())
+
+
+def case_dynamics(arg, warm_up=24, steps=96, exact_steps=12):
+    """Subspace dynamics (SPEC 6) on the 10k-tet bar; arg = number of modes.
+
+    Deformer: ``reduced.prepare_reduced_rs`` (default settings: cubature). Linear material
+    (V = 1/2 s^T Lambda s, exact), gravity, h = 1/24 s, mass damping 0.5/s: released straight,
+    the soft bar swings down through large rotations. Steps/s is timed after ``warm_up`` steps
+    over ``steps`` (cubature) or ``exact_steps`` (no cubature: the same basis with every tet at
+    weight 1, i.e. the exact all-tet reduced fit). At 20 modes also StVK with its energy
+    cubature (``materials.prepare_potential`` defaults: 200 poses, up to 200 tets).
+    """
+    import numpy as np
+    from solver import dynamics, fem, materials, reduced, rs
+    num_modes = int(arg)
+    X, T, pinned, masses, body, recon = _dynamics_body(num_modes)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    start = time.perf_counter()
+    deformer, info = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                                recon, modal_rs=modal_rs)
+    prepare = time.perf_counter() - start
+    volumes = fem.tet_volumes(X, T)
+    mu, lam = fem.lame_parameters(1e6, 0.45)
+    linear = materials.ReducedPotential.exact(materials.Linear(mu, lam), modal_rs, volumes)
+
+    def simulate(deformer_, potential, count):
+        sim = dynamics.Simulation(deformer_, X, masses, potential, 1.0 / 24.0,
+                                  gravity=(0.0, 0.0, -9.81), mass_damping=0.5)
+        return _steps_per_second(sim, warm_up, count)
+
+    rate, iterations = simulate(deformer, linear, steps)
+    row = dict(modes=num_modes, tets=len(T), basis_size=deformer.basis_size,
+               cubature_tets=len(deformer.cubature_tets), prepare_seconds=prepare,
+               steps_per_second=rate, iterations=iterations)
+    if num_modes == 20:
+        start = time.perf_counter()
+        stvk, fit = materials.prepare_potential(materials.StVK(mu, lam), modal_rs, volumes,
+                                                body.eigenvalues)
+        row["energy_cubature_seconds"] = time.perf_counter() - start
+        row["energy_cubature_tets"] = len(fit["tets"])
+        row["stvk_steps_per_second"], row["stvk_iterations"] = simulate(deformer, stvk, steps)
+    start = time.perf_counter()
+    everything = reduced.ReducedRS.build(X, T, modal_rs, deformer.basis, recon,
+                                         np.arange(len(T)), np.ones(len(T)))
+    row["exact_build_seconds"] = time.perf_counter() - start
+    row["exact_steps_per_second"], row["exact_iterations"] = simulate(everything, linear,
+                                                                      exact_steps)
+    row["speedup"] = row["steps_per_second"] / row["exact_steps_per_second"]
+    row["peak_rss_mb"] = peak_rss_mb()
+    return row
+
+
+def case_dynamics_reference(arg, steps=4):
+    """Full-space reference step (tests' FullSpaceCorotational: corotational FEM, implicit
+    Euler, Newton with sparse LU) on the same bar, gravity, h = 1/24: seconds per step."""
+    from tests.solver.test_dynamics import FullSpaceCorotational
+    from solver import fem
+    X, T, pinned, masses, _, _ = _dynamics_body(1)
+    mu, lam = fem.lame_parameters(1e6, 0.45)
+    reference = FullSpaceCorotational(X, T, masses, mu, lam, 1.0 / 24.0, (0.0, 0.0, -9.81),
+                                      pinned, mass_damping=0.5)
+    start = time.perf_counter()
+    iterations = [reference.step() for _ in range(steps)]
+    seconds = (time.perf_counter() - start) / steps
+    return dict(tets=len(T), nodes=len(X), steps=steps, seconds_per_step=seconds,
+                steps_per_second=1.0 / seconds, iterations=sum(iterations) / steps,
+                peak_rss_mb=peak_rss_mb())
+
+
+def dynamics_table(rows, reference):
+    """Markdown: steps/s per mode count, with the full-space reference step below."""
+    text = table(
+        "Subspace dynamics (10k-tet pinned 4:1:1 bar, E = 1e6 Pa, gravity, h = 1/24, linear "
+        "material; target >= 500 steps/s at 20 modes with cubature)", rows,
+        [("modes", ("modes", "{}")), ("rB", ("basis_size", "{}")),
+         ("cubature tets", ("cubature_tets", "{}")), ("prepare s", ("prepare_seconds", "{:.1f}")),
+         ("steps/s cubature", ("steps_per_second", "{:.0f}")),
+         ("Newton it/step", ("iterations", "{:.2f}")),
+         ("steps/s all tets", ("exact_steps_per_second", "{:.1f}")),
+         ("Newton it/step (all)", ("exact_iterations", "{:.2f}")),
+         ("speed-up", ("speedup", "{:.0f}x")), ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
+    extra = [row for row in rows if "stvk_steps_per_second" in row]
+    if extra:
+        text += "\n" + table(
+            "Subspace dynamics with StVK (20 modes, energy cubature trained on 200 poses)", extra,
+            [("modes", ("modes", "{}")), ("energy cubature tets", ("energy_cubature_tets", "{}")),
+             ("training s", ("energy_cubature_seconds", "{:.1f}")),
+             ("steps/s", ("stvk_steps_per_second", "{:.0f}")),
+             ("Newton it/step", ("stvk_iterations", "{:.2f}"))])
+    return text + "\n" + table(
+        "Full-space reference step (corotational FEM, same bar, Newton + sparse LU)", [reference],
+        [("tets", ("tets", "{:,}")), ("nodes", ("nodes", "{:,}")),
+         ("s/step", ("seconds_per_step", "{:.2f}")), ("Newton it/step", ("iterations", "{:.1f}")),
+         ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
+
+
+CASES["dynamics"] = case_dynamics
+CASES["dynamics_reference"] = case_dynamics_reference
+
 def run_child(case, arg):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
                          capture_output=True, text=True, cwd=ROOT)
@@ -156,6 +469,16 @@ def main():
          ("reconstruct s", ("reconstruct_seconds", "{:.4f}")),
          ("volume ratio", ("volume_ratio", "{:.3f}")),
          ("peak RSS MB", ("peak_rss_mb", "{:.0f}")), ("RSS before MB", ("rss_before_mb", "{:.0f}"))])
+    results["reduced_rs"] = [run_child("reduced_rs", s) for s in sizes]
+    text += "\n" + reduced_rs_table(results["reduced_rs"])
+    results["spacetime"] = spacetime_rows(args.quick)
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + spacetime_table(results["spacetime"])
+    results["dynamics"] = [run_child("dynamics", m)
+                           for m in (("20",) if args.quick else DYNAMICS_MODES)]
+    results["dynamics_reference"] = run_child("dynamics_reference", "10k")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + dynamics_table(results["dynamics"], results["dynamics_reference"])
     (output / "results.md").write_text(text)
     print(text)
 

@@ -10,6 +10,7 @@ import numpy as np
 from .animation import fcurves as _fcurves
 
 BAKE_PREFIX = "RS Bake "
+TAKE_PREFIX = "RS Take "     # a kept bake: the input motion of a space-time edit
 
 
 def bake_key_name(frame):
@@ -89,3 +90,43 @@ def remove_keys(obj, prefix):
     for key in doomed:
         obj.shape_key_remove(key)
     return len(doomed)
+
+
+def keep_bake_as_take(obj):
+    """Turn the current bake into the take (the input motion of later edits). Returns its frames.
+
+    The take's keys stay at 0 and are not animated, so they show nothing by themselves; a
+    previous take is replaced.
+    """
+    frames = bake_frames(obj)
+    if not frames:
+        return []
+    remove_keys(obj, TAKE_PREFIX)
+    keys = obj.data.shape_keys
+    curves = _fcurves(keys, create=False)
+    for frame in frames:
+        block = keys.key_blocks[bake_key_name(frame)]
+        if curves is not None:
+            curve = curves.find(f'key_blocks["{block.name}"].value')
+            if curve is not None:
+                curves.remove(curve)
+        block.value = 0.0
+        block.name = f"{TAKE_PREFIX}{frame:04d}"
+    obj.data.update()
+    return frames
+
+
+def take_poses(obj):
+    """(frames, positions (F, n, 3)) of the stored take, or ([], None)."""
+    keys = obj.data.shape_keys
+    if keys is None:
+        return [], None
+    blocks = sorted((int(k.name[len(TAKE_PREFIX):]), k) for k in keys.key_blocks
+                    if k.name.startswith(TAKE_PREFIX) and k.name[len(TAKE_PREFIX):].isdigit())
+    if not blocks:
+        return [], None
+    n = len(obj.data.vertices)
+    positions = np.empty((len(blocks), n * 3), dtype=np.float32)
+    for row, (_, block) in zip(positions, blocks):
+        block.data.foreach_get("co", row)
+    return [f for f, _ in blocks], positions.reshape(len(blocks), n, 3).astype(np.float64)

@@ -2,6 +2,7 @@
 
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
 Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
+Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates).
 Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.<key>.npz` (the temp folder for
 an unsaved file). The key hashes everything the stage depends on, so a stale file is never used,
 and a new preparation writes new files beside the old ones: an unfinished or cancelled one leaves
@@ -19,7 +20,7 @@ import bpy
 import numpy as np
 import scipy.sparse as sp
 
-from ..solver import cache, embed, fem, modes, tetmesh
+from ..solver import cache, embed, fem, modes, reduced, rs, tetmesh
 from . import scene
 from .jobs import Cancelled
 from .scene import InputError
@@ -53,6 +54,7 @@ class TetBody:
 class PreparedBody:
     tet_body: TetBody
     linear_modes: modes.LinearModes
+    deformer: reduced.ReducedRS = None      # None for a body prepared before reduced RS existed
 
     def surface_mode(self, index):
         """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
@@ -109,7 +111,24 @@ def prune(obj):
 
 
 def _stage_keys(settings):
-    return (("tets", settings.tets_key), ("modes", settings.prepared_key))
+    return (("tets", settings.tets_key), ("modes", settings.prepared_key),
+            ("reduced", settings.reduced_key))
+
+
+def _to_arrays(stage, value):
+    if stage == "tets":
+        return value.to_arrays()
+    if stage == "modes":
+        return _modes_to_arrays(value)
+    return value.save_arrays()
+
+
+def _from_arrays(stage, arrays):
+    if stage == "tets":
+        return TetBody.from_arrays(arrays)
+    if stage == "modes":
+        return _modes_from_arrays(arrays)
+    return reduced.ReducedRS.from_arrays(arrays)
 
 
 # --- inputs, read on the main thread ----------------------------------------------------------------
@@ -128,6 +147,10 @@ class BodyInputs:
     poisson: float = 0.0
     density: float = 0.0
     num_modes: int = 0
+    basis_size: int = 0            # reduced RS: largest basis B
+    cubature_tets: int = 0         # reduced RS: largest cubature
+    cubature_tolerance: float = 0.0
+    training_poses: int = 0
 
     @functools.cached_property
     def tets_key(self):
@@ -139,6 +162,11 @@ class BodyInputs:
         pins = self.pin_mask if self.pin_mask is not None else "free"
         return cache.content_key("modes", self.tets_key, pins, self.youngs, self.poisson,
                                  self.density, self.num_modes)
+
+    @functools.cached_property
+    def reduced_key(self):
+        return cache.content_key("reduced", self.modes_key, self.basis_size, self.cubature_tets,
+                                 self.cubature_tolerance, self.training_poses)
 
 
 def read_inputs(obj, depsgraph, with_material=True):
@@ -173,6 +201,10 @@ def read_inputs(obj, depsgraph, with_material=True):
     inputs.poisson = settings.poisson_ratio
     inputs.density = settings.density
     inputs.num_modes = settings.num_modes
+    inputs.basis_size = settings.basis_size
+    inputs.cubature_tets = settings.cubature_tets
+    inputs.cubature_tolerance = settings.cubature_tolerance
+    inputs.training_poses = settings.training_poses
     return inputs
 
 
@@ -268,12 +300,38 @@ def modes_stage(inputs, tet_body, job):
     return result
 
 
+def reduced_stage(inputs, tet_body, linear_modes, job):
+    """The reduced RS deformer: from memory, the disk cache, or basis + cubature training."""
+    key = inputs.reduced_key
+    if key in _MEMORY:
+        return _MEMORY[key]
+    arrays = _load_cached(inputs, "reduced", key, job)
+    if arrays is not None:
+        deformer = reduced.ReducedRS.from_arrays(arrays)
+    else:
+        X, T = tet_body.nodes, tet_body.tets
+        pinned = linear_modes.pinned_nodes
+        job.step(0.72, "Reduced RS: training poses")
+        stats["reduced"] += 1
+        recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned if len(pinned) else None)
+        masses = fem.lumped_masses(X, T, inputs.density)
+        deformer, _ = reduced.prepare_reduced_rs(
+            X, T, masses, linear_modes.vectors, linear_modes.eigenvalues, recon,
+            max_size=inputs.basis_size, max_tets=inputs.cubature_tets,
+            tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
+            progress=lambda f, message: job.step(0.72 + 0.27 * f, f"Reduced RS: {message}"))
+        _save_cached(inputs, "reduced", key, deformer.save_arrays(), job)
+    _remember(key, deformer)
+    return deformer
+
+
 def prepare(inputs, job):
-    """Both stages; returns a PreparedBody."""
+    """All three stages; returns a PreparedBody."""
     tet_body = tet_stage(inputs, job)
     linear_modes = modes_stage(inputs, tet_body, job)
+    deformer = reduced_stage(inputs, tet_body, linear_modes, job)
     job.step(1.0, "Done")
-    return PreparedBody(tet_body, linear_modes)
+    return PreparedBody(tet_body, linear_modes, deformer)
 
 
 # --- for the preview and later operators -------------------------------------------------------------
@@ -287,7 +345,7 @@ def load_prepared(obj):
     linear_modes = _load_stage(obj, "modes", settings.prepared_key)
     if tet_body is None or linear_modes is None:
         return None
-    return PreparedBody(tet_body, linear_modes)
+    return PreparedBody(tet_body, linear_modes, _load_stage(obj, "reduced", settings.reduced_key))
 
 
 def persist(obj):
@@ -303,7 +361,7 @@ def persist(obj):
         value = _load_stage(obj, stage, key)
         if value is None:
             continue
-        arrays = value.to_arrays() if stage == "tets" else _modes_to_arrays(value)
+        arrays = _to_arrays(stage, value)
         try:
             cache.save(path, key, arrays)
         except OSError as exc:
@@ -325,7 +383,7 @@ def _load_stage(obj, stage, key):
         except cache.CacheCorrupt:
             continue
         if arrays is not None:
-            value = TetBody.from_arrays(arrays) if stage == "tets" else _modes_from_arrays(arrays)
+            value = _from_arrays(stage, arrays)
             _remember(key, value)
             return value
     return None

@@ -2,7 +2,9 @@
 
 Linear: the rest pose plus the scaled mode, X + s·w. RS: the same modal coordinate sent through
 rotation-strain coordinates and reconstructed, Ψ(s·Q w), which curls where the linear mode
-stretches. The scale s makes the linear mode's largest displacement the chosen amplitude.
+stretches. Reduced RS: the same through the reduced basis and cubature, Φ B q(s·e_k), whose
+cost does not grow with the mesh. The scale s makes the linear mode's largest displacement the
+chosen amplitude.
 
 The preview owns one shape key, named PREVIEW_KEY, and the Basis key if the mesh had none. Turning
 the preview off removes exactly those, so the mesh is left as it was; the base vertices are never
@@ -37,6 +39,10 @@ def preview_positions(obj, tools):
     scale = settings.preview_amplitude * diagonal / peak
     if settings.preview_method == 'LINEAR':
         return rest + scale * linear
+    if settings.preview_method == 'REDUCED' and tools.deformer is not None:
+        z = np.zeros(tools.deformer.num_coords)
+        z[index] = scale
+        return rest + (tools.surface_basis @ tools.deformer.q(z)).reshape(-1, 3)
     y = tools.modal_rs[:, :, index] * scale
     return rest + tools.surface(tools.reconstruction.reconstruct(y))
 

@@ -1,7 +1,7 @@
 """Per-object settings and results, saved in the .blend (`obj.rs_elastic`)."""
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
-                       IntProperty, StringProperty)
+                       IntProperty, PointerProperty, StringProperty)
 
 from . import preview, tet_overlay
 
@@ -17,6 +17,29 @@ def _show_tets_changed(self, context):
 class RSElasticMode(bpy.types.PropertyGroup):
     """One linear mode's result, for the panel and for scripts."""
     frequency_hz: FloatProperty(name="Frequency", unit='NONE', description="Natural frequency in Hz")
+
+
+def _is_empty(self, obj):
+    return obj.type == 'EMPTY'
+
+
+class RSElasticHandle(bpy.types.PropertyGroup):
+    """An Empty bound to a set of the body's vertices (a vertex group)."""
+    empty: PointerProperty(type=bpy.types.Object, poll=_is_empty, name="Empty",
+                           description="The Empty whose keyed locations the handle must reach")
+    vertex_group: StringProperty(name="Vertex Group",
+                                 description="The vertices whose centroid follows the Empty")
+    follow: BoolProperty(name="Follow Every Frame", default=False,
+                         description="Constrain every frame of the range, not only the keyed ones")
+    weight: FloatProperty(name="Weight", default=1.0, min=0.0, soft_max=10.0,
+                          description="How strongly this handle pulls, relative to the others")
+    residual: FloatProperty(name="Residual", default=-1.0, subtype='DISTANCE',
+                            description="Largest distance from the Empty over the constrained "
+                                        "frames after the last solve (-1: not solved)")
+
+
+class RSElasticValue(bpy.types.PropertyGroup):
+    value: FloatProperty()
 
 
 class RSElasticSettings(bpy.types.PropertyGroup):
@@ -50,6 +73,20 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Modes", default=20, min=1, soft_max=100,
         description="Number of linear deformation modes to compute")
 
+    # --- Reduced RS (basis and cubature) ------------------------------------------------------------
+    basis_size: IntProperty(
+        name="Basis Size", default=120, min=1, soft_max=300,
+        description="Largest reduced basis: the modes plus their second-order RS terms")
+    cubature_tets: IntProperty(
+        name="Cubature Tets", default=150, min=1, soft_max=1000,
+        description="Largest number of tets the reduced RS map is evaluated on")
+    cubature_tolerance: FloatProperty(
+        name="Cubature Tolerance", default=2e-3, min=1e-6, max=0.5, precision=4,
+        description="Relative fit error at which cubature training stops")
+    training_poses: IntProperty(
+        name="Training Poses", default=80, min=4, soft_max=400,
+        description="Random large-rotation poses the cubature is trained on")
+
     # --- Results, written by the operators -----------------------------------------------------------
     tet_node_count: IntProperty(name="Nodes", default=0)
     tet_count: IntProperty(name="Tets", default=0)
@@ -57,6 +94,10 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                              description="Cache key of the tet mesh this object was tetrahedralised to")
     prepared_key: StringProperty(name="Prepared Key", default="",
                                  description="Cache key of the modes this object was prepared with")
+    reduced_key: StringProperty(name="Reduced Key", default="",
+                                description="Cache key of the reduced RS deformer")
+    reduced_basis_count: IntProperty(name="Basis", default=0)
+    cubature_count: IntProperty(name="Cubature", default=0)
     mode_results: CollectionProperty(type=RSElasticMode)
     mnf: FloatProperty(name="MNF", default=0.0,
                        description="Minimal natural frequency sqrt(lambda_1) in rad/s: lower means a "
@@ -70,7 +111,9 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Method", update=_preview_changed,
         items=[('LINEAR', "Linear", "Rest pose plus the scaled mode: stretches at large amplitude"),
                ('RS', "RS", "The mode warped through rotation-strain coordinates: bends and "
-                            "curls without inflating")],
+                            "curls without inflating"),
+               ('REDUCED', "Reduced RS", "RS through the reduced basis and its cubature: the "
+                                         "same motion at a cost independent of mesh size")],
         default='RS',
         description="How the mode is turned into a pose")
     preview_mode: IntProperty(name="Mode", default=1, min=1, update=_preview_changed,
@@ -82,6 +125,35 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     preview_made_basis: BoolProperty(default=False, options={'HIDDEN'},
                                      description="The preview created the Basis key and removes it")
 
+    # --- Space-time editing ---------------------------------------------------------------------------
+    handles: CollectionProperty(type=RSElasticHandle)
+    active_handle: IntProperty(default=0)
+    use_scene_range: BoolProperty(name="Scene Range", default=True,
+                                  description="Solve over the scene's frame range")
+    frame_start: IntProperty(name="Start", default=1, min=0)
+    frame_end: IntProperty(name="End", default=100, min=0)
+    optimize_material: BoolProperty(
+        name="Optimize Material", default=False,
+        description="Also optimise frequencies, damping and mode shapes so the motion stays "
+                    "physically consistent (slower)")
+    tightness: FloatProperty(
+        name="Tightness", default=1e4, min=1.0, soft_max=1e8,
+        description="How tightly handles and pose keys are met against the control force: a "
+                    "constraint misses by about its unconstrained miss divided by this")
+    damping_mass: FloatProperty(
+        name="Mass Damping", default=0.1, min=0.0, soft_max=10.0,
+        description="Rayleigh damping α (1/s): slows every mode alike")
+    damping_stiffness: FloatProperty(
+        name="Stiffness Damping", default=0.002, min=0.0, soft_max=0.1, precision=4,
+        description="Rayleigh damping β (s): damps fast modes more than slow ones")
+    iterations: IntProperty(name="Iterations", default=20, min=1, soft_max=200,
+                            description="Largest number of solver iterations")
+    use_take: BoolProperty(name="Edit the Take", default=False,
+                           description="Use the stored take (a kept bake) as the input motion")
+    take_weight: FloatProperty(name="Take Weight", default=1.0, min=0.0, soft_max=100.0,
+                               description="How closely the edit follows the input take")
+    solve_history: CollectionProperty(type=RSElasticValue)
+
     @property
     def frequencies(self):
         """Natural frequencies in Hz, ascending (empty until prepared)."""
@@ -92,7 +164,7 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         return bool(self.prepared_key)
 
 
-CLASSES = (RSElasticMode, RSElasticSettings)
+CLASSES = (RSElasticMode, RSElasticHandle, RSElasticValue, RSElasticSettings)
 
 
 def register():

@@ -51,6 +51,18 @@ class RSTools:
     def pose_transfer(self):
         return transfer.PoseTransfer(self.nodes, self.tets, self.embedding)
 
+    @property
+    def deformer(self):
+        """The reduced RS deformer (None if the body was prepared without one)."""
+        return self.body.deformer
+
+    @functools.cached_property
+    def surface_basis(self):
+        """Φ B (3n, rB): base-vertex displacement per reduced coordinate, node-major rows."""
+        B = self.deformer.basis
+        N, rB = len(self.nodes), B.shape[1]
+        return (self.embedding @ B.reshape(N, 3 * rB)).reshape(-1, rB)
+
     def surface(self, node_displacement):
         """(n, 3) base-vertex displacement of a node displacement (N, 3)."""
         return self.embedding @ node_displacement
@@ -58,7 +70,7 @@ class RSTools:
 
 def for_object(obj):
     """RSTools for the object's prepared body, or None if it is not prepared for this mesh."""
-    key = obj.rs_elastic.prepared_key
+    key = obj.rs_elastic.prepared_key + obj.rs_elastic.reduced_key
     if key in _TOOLS:
         _TOOLS.move_to_end(key)
         return _TOOLS[key]

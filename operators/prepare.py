@@ -20,6 +20,9 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         settings = obj.rs_elastic
         settings.tets_key = self._inputs.tets_key
         settings.prepared_key = self._inputs.modes_key
+        settings.reduced_key = self._inputs.reduced_key
+        settings.reduced_basis_count = body.deformer.basis_size
+        settings.cubature_count = len(body.deformer.cubature_tets)
         settings.tet_node_count = len(body.tet_body.nodes)
         settings.tet_count = len(body.tet_body.tets)
         settings.mode_results.clear()
@@ -32,7 +35,9 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         bodies.prune(obj)
         tet_overlay.tag_redraw(context)
         f = body.linear_modes.frequencies_hz
-        self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz")
+        self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz; "
+                              f"reduced basis {settings.reduced_basis_count}, cubature "
+                              f"{settings.cubature_count} tets")
         return {'FINISHED'}
 
 

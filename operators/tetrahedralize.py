@@ -22,6 +22,7 @@ class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
         settings = obj.rs_elastic
         if settings.tets_key != self._key:
             settings.prepared_key = ""   # the modes belong to the old tet mesh
+            settings.reduced_key = ""
             settings.mode_results.clear()
             settings.mnf = 0.0
         settings.tets_key = self._key

@@ -43,8 +43,17 @@ class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
         row = layout.row()
         row.prop(settings, "num_modes")
         layout.operator("rs_elastic.prepare", icon='PLAY')
+        col = layout.column(align=True)
+        col.use_property_split = True
+        col.prop(settings, "basis_size")
+        col.prop(settings, "cubature_tets")
+        col.prop(settings, "cubature_tolerance")
+        col.prop(settings, "training_poses")
         if settings.is_prepared:
             layout.label(text=f"MNF {settings.mnf:.4g} rad/s")
+            if settings.reduced_key:
+                layout.label(text=f"Reduced basis {settings.reduced_basis_count}, "
+                                  f"cubature {settings.cubature_count} tets")
             layout.template_list("RS_ELASTIC_UL_modes", "", settings, "mode_results",
                                  settings, "preview_mode", rows=4)
 

@@ -8,17 +8,23 @@ Full RS warping maps modal coordinates z (m,) to a pose by solving a global Pois
     q(z) = sum_{e in C} w_e P_e vec(b_e(y_e))   (rB,) with P_e = (B^T L B)^-1 (G_e B)^T V_e
     u = B q                                 (N, 3) displacement [m]
 
-Everything per evaluation lives in C and the reduced space, so a pose costs O(|C| rB) whatever
-the mesh size. Rows of B (e.g. Phi B for render vertices, or a handful of vertices) give any part
-of the pose without the rest ("partial reconstruction").
+(``ReducedRS`` integrates the linear part of b exactly and only the rest by cubature; see its
+docstring.) Everything per evaluation lives in C and the reduced space, so a pose costs
+O(|C| rB) whatever the mesh size. Rows of B (e.g. Phi B for render vertices, or a handful of
+vertices) give any part of the pose without the rest ("partial reconstruction").
 
 Shapes and units: X (N, 3) [m], T (E, 4), ``modal_rs`` (E, 9, m) = ``rs.linear_rs(Q, W)`` the
 linear RS coordinates of the modes (radians and strain per unit z), B (3N, rB) node-major [m per
 unit q]. With B mass-orthonormal (B^T M B = I), |q| is the mass-weighted RMS norm of u times
 sqrt(total mass), which makes errors in q meaningful.
 
+Pipeline: ``prepare_reduced_rs`` does everything (training poses, basis, cubature);
+``second_order_basis`` and ``cubature.train_reduced_rs_cubature`` are its steps.
 ``LinearDeformer`` has the same interface for plain linear modal motion (q = z, B = W).
 """
+
+import math
+import time
 
 import numpy as np
 import scipy.linalg
@@ -40,14 +46,66 @@ def second_order_targets(modal_rs, i, j):
     b = [w]x + eps + [w]x eps + 1/2 [w]x^2 + O(3) with w = sum z_k w^k, eps = sum z_k eps^k, so
     d^2 b / dz_i dz_j = [w^i]x eps^j + [w^j]x eps^i + 1/2 ([w^i]x [w^j]x + [w^j]x [w^i]x).
     """
-    modal_rs = np.asarray(modal_rs)
-    Ki, Kj = rs.skew(modal_rs[:, :3, i]), rs.skew(modal_rs[:, :3, j])
-    Si = np.einsum("ek,kab->eab", modal_rs[:, 3:, i], rs.STRAIN_BASIS)
-    Sj = np.einsum("ek,kab->eab", modal_rs[:, 3:, j], rs.STRAIN_BASIS)
-    return Ki @ Sj + Kj @ Si + 0.5 * (Ki @ Kj + Kj @ Ki)
+    return _pair_target(*_mode_fields(np.asarray(modal_rs)[:, :, [i, j]]), 0, 1)
+
+
+def mode_series_targets(modal_rs, i, k):
+    """k-th Taylor coefficient of b along mode i alone, (E, 3, 3) (k >= 1).
+
+    b(z e_i) = exp(z [w^i]x)(I + z eps^i) - I = sum_k z^k ([w^i]x^k / k! + [w^i]x^(k-1) eps^i
+    / (k-1)!); k = 2 gives 1/2 d^2 b / dz_i^2 of ``second_order_targets``.
+    """
+    omega, strain = _mode_fields(np.asarray(modal_rs)[:, :, [i]])
+    K = rs.skew(omega[0])
+    power = np.linalg.matrix_power(K, k - 1)                        # [w]x^(k-1), (E, 3, 3)
+    return (power @ K) / math.factorial(k) + (power @ strain[0]) / math.factorial(k - 1)
+
+
+def _mode_fields(modal_rs):
+    """Per mode: omega (m, E, 3) and the strain matrices eps (m, E, 3, 3) of modal_rs."""
+    m, n_tets = modal_rs.shape[2], modal_rs.shape[0]
+    omega = np.ascontiguousarray(modal_rs[:, :3, :].transpose(2, 0, 1))
+    strain = (modal_rs[:, 3:, :].transpose(2, 0, 1) @ rs.STRAIN_BASIS.reshape(6, 9))
+    return omega, strain.reshape(m, n_tets, 3, 3)
+
+
+def _pair_target(omega, strain, i, j):
+    """d^2 b / dz_i dz_j (E, 3, 3) from ``_mode_fields``, without 3 x 3 products:
+    [a]x S is the cross product of a with the columns of S, and
+    1/2 ([a]x [b]x + [b]x [a]x) = 1/2 (a b^T + b a^T) - (a . b) I."""
+    wi, wj = omega[i], omega[j]
+    out = _cross_columns(wi, strain[j]) + _cross_columns(wj, strain[i])
+    out += 0.5 * (wi[:, :, None] * wj[:, None, :] + wj[:, :, None] * wi[:, None, :])
+    out -= np.einsum("ei,ei->e", wi, wj)[:, None, None] * np.eye(3)
+    return out
+
+
+def _cross_columns(a, S):
+    """[a]x S (E, 3, 3) for vectors a (E, 3) and matrices S (E, 3, 3)."""
+    a0, a1, a2 = a[:, 0, None], a[:, 1, None], a[:, 2, None]
+    out = np.empty_like(S)
+    out[:, 0] = a1 * S[:, 2] - a2 * S[:, 1]
+    out[:, 1] = a2 * S[:, 0] - a0 * S[:, 2]
+    out[:, 2] = a0 * S[:, 1] - a1 * S[:, 0]
+    return out
+
+
+def rs_snapshots(modal_rs, recon, Z, progress=None):
+    """Full RS displacements (3N, S) [m] of poses Z (S, m): recon.reconstruct(modal_rs z).
+
+    One Poisson solve per pose (the factor of ``recon`` is reused); pins hold exactly.
+    """
+    Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+    out = np.empty((3 * recon.num_nodes, len(Z)))
+    for k, z in enumerate(Z):                                   # one Poisson solve per pose
+        if progress is not None:
+            progress(k / len(Z), f"full RS snapshot {k + 1}/{len(Z)}")
+        out[:, k] = recon.reconstruct(np.asarray(modal_rs) @ z).reshape(-1)
+    return out
 
 
 def second_order_basis(X, T, masses, modal_rs, recon, modes_W, max_size=120, drop_tol=1e-6,
+                       order=3, snapshots=None, snapshot_size=None, screen=2.0,
                        progress=None):
     """Displacement basis B (3N, rB) [m]: the modes W, then second-order RS vectors (SPEC 4).
 
@@ -55,46 +113,84 @@ def second_order_basis(X, T, masses, modal_rs, recon, modes_W, max_size=120, dro
     ``recon`` and ``modal_rs``). masses (N,) lumped node masses [kg]; modal_rs (E, 9, m) linear
     RS of the modes; recon a ``rs.PoissonReconstruction`` with the body's pins; modes_W (3N, m).
 
-    Candidates: for each pair i <= j, c_ij = Psi(d^2 b / dz_i dz_j) (one Poisson solve, which
-    honours the pins), scaled to its actual second-order contribution when modes i and j each
-    turn by 1 rad at their most rotating tet: a_i a_j c_ij for i < j, 1/2 a_i^2 c_ii, with
-    a_i = 1 / max_e |omega^i_e|. This makes candidates of different modes comparable.
+    Candidates (one Poisson solve each, which honours the pins):
+    - SPEC 4: for each pair i <= j, Psi(d^2 b / dz_i dz_j);
+    - beyond SPEC 4, for each mode alone the Taylor terms of orders 3..``order`` of the
+      rotation exponential (``mode_series_targets``; order=2 switches them off). Second order
+      leaves about 2 % of the bounding-box diagonal at 90 deg on single bending modes.
+    Every candidate is scaled to the displacement it actually adds when the modes involved
+    each turn by REFERENCE_ANGLE (90 deg) at their most rotating tet: z_i = 90 deg / max_e
+    |omega^i_e|, times z_i z_j (i < j), z_i^2 / 2 (i = j) or z_i^k. This ranks terms of
+    different modes and orders on one scale. With many modes (m(m+1)/2 pairs) only the
+    ``screen`` x (columns available) terms with the largest scaled targets (volume-weighted
+    norm, no solve needed) are solved; screen=None solves every term.
 
     Selection (pivoted Gram-Schmidt in the mass inner product): the modes come first, in
     order; then repeatedly the candidate with the largest M-norm *outside* the current span is
-    appended (importance = how much new displacement it adds at 1 rad). A candidate whose
-    remaining norm falls to ``drop_tol`` times its own norm is dropped as near-dependent. Stops
-    at ``max_size`` columns or when no candidate is left. Vectors are re-orthogonalised once
-    (classical Gram-Schmidt twice), so B^T M B = I to round-off; rows of pinned DOFs stay
-    exactly 0 since every candidate is 0 there.
+    appended (the most new displacement at 90 deg first). A candidate whose remaining norm
+    falls to ``drop_tol`` times its own norm is dropped as near-dependent. Vectors are
+    orthogonalised twice (classical Gram-Schmidt), so B^T M B = I to round-off; rows of pinned
+    DOFs stay exactly 0 since every candidate is 0 there.
+
+    Optional enrichment (beyond SPEC 4, recommended for 90 deg poses of mixed modes, where
+    the terms above leave 1-2 %): ``snapshots`` (3N, S) are full RS displacements of training
+    poses (``rs_snapshots``); their part outside the span so far is compressed by POD (mass
+    inner product, method of snapshots) and its leading directions fill the end of the basis.
+    ``snapshot_size`` (default: half the room left by the modes) is reserved for them; the
+    series candidates get the rest, and snapshots fill whatever the series leave unused.
 
     progress: optional callable(fraction, message), called between Poisson solves and picks;
     an exception raised inside it aborts the build and propagates.
-    Returns B (3N, rB), rB <= max(max_size, m).
+    Returns B (3N, rB), m <= rB <= max(max_size, m).
     """
     modal_rs = np.asarray(modal_rs, dtype=np.float64)
     W = np.asarray(modes_W, dtype=np.float64)
     m_diag = np.repeat(np.asarray(masses, dtype=np.float64), 3)          # (3N,) diag of M
-    num_modes = W.shape[1]
-    candidates = _second_order_candidates(modal_rs, recon, progress)     # (3N, m(m+1)/2)
-    basis = _mass_orthonormal(W, m_diag)
-    extra = max(int(max_size) - basis.shape[1], 0)
-    picked = _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress)
-    assert picked.shape[1] >= num_modes
-    return picked
+    room = max(int(max_size) - W.shape[1], 0)
+    if snapshots is not None and snapshot_size is None:
+        snapshot_size = room // 2
+    reserved = 0 if snapshots is None else min(int(snapshot_size), room)
+    keep = None if screen is None else int(np.ceil(screen * (room - reserved)))
+    candidates = _series_candidates(modal_rs, recon, order, keep, progress)
+    basis = _pivoted_gram_schmidt(_mass_orthonormal(W, m_diag), candidates, m_diag,
+                                  room - reserved, drop_tol, progress)
+    if snapshots is not None:
+        basis = _append_snapshot_modes(basis, np.asarray(snapshots, dtype=np.float64), m_diag,
+                                       int(max_size) - basis.shape[1], drop_tol)
+    return basis
 
 
-def _second_order_candidates(modal_rs, recon, progress):
-    """(3N, P) scaled Psi-solves of d^2 b / dz_i dz_j for all pairs i <= j (see the caller)."""
+REFERENCE_ANGLE = 0.5 * np.pi   # rotation [rad] at which basis candidates are ranked
+
+
+def _series_candidates(modal_rs, recon, order, keep, progress):
+    """(3N, P) scaled Psi-solves of the pair and single-mode terms (see the caller).
+
+    Only the ``keep`` terms with the largest volume-weighted target norm |factor b|_V are
+    solved (a cheap screen: Psi is a least-squares fit, so a small target cannot give a large
+    displacement); keep None solves them all.
+    """
     num_modes = modal_rs.shape[2]
-    scale = 1.0 / np.maximum(max_mode_rotations(modal_rs), 1e-300)
-    pairs = [(i, j) for j in range(num_modes) for i in range(j + 1)]
-    columns = np.empty((3 * recon.num_nodes, len(pairs)))
-    for k, (i, j) in enumerate(pairs):                           # one Poisson solve per pair
+    amplitude = REFERENCE_ANGLE / np.maximum(max_mode_rotations(modal_rs), 1e-300)
+    terms = [(i, j, None) for j in range(num_modes) for i in range(j + 1)]
+    terms += [(i, i, k) for k in range(3, int(order) + 1) for i in range(num_modes)]
+    fields = _mode_fields(modal_rs)
+
+    def scaled_target(i, j, k):
+        if k is None:
+            factor = amplitude[i] * amplitude[j] * (0.5 if i == j else 1.0)
+            return factor * _pair_target(*fields, i, j)
+        return amplitude[i] ** k * mode_series_targets(modal_rs, i, k)
+
+    if keep is not None and keep < len(terms):
+        sizes = [np.einsum("e,eab,eab->", recon.volumes, b, b)
+                 for b in (scaled_target(*term) for term in terms)]       # one term at a time
+        terms = [terms[n] for n in np.sort(np.argsort(sizes)[::-1][:keep])]
+    columns = np.empty((3 * recon.num_nodes, len(terms)))
+    for n, term in enumerate(terms):                             # one Poisson solve per term
         if progress is not None:
-            progress(0.8 * k / len(pairs), f"second-order basis vector {k + 1}/{len(pairs)}")
-        factor = scale[i] * scale[j] * (0.5 if i == j else 1.0)
-        columns[:, k] = factor * recon.solve(second_order_targets(modal_rs, i, j)).reshape(-1)
+            progress(0.8 * n / len(terms), f"basis candidate {n + 1}/{len(terms)}")
+        columns[:, n] = recon.solve(scaled_target(*term)).reshape(-1)
     return columns
 
 
@@ -106,26 +202,131 @@ def _mass_orthonormal(W, m_diag):
 
 def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
     """Append up to ``extra`` M-orthonormal vectors from candidates, largest residual first."""
+    start = basis.shape[1]
+    out = np.empty((basis.shape[0], start + max(extra, 0)))
+    out[:, :start] = basis
     norms = np.sqrt(np.einsum("ik,i,ik->k", candidates, m_diag, candidates))
     residual = candidates - basis @ (basis.T @ (m_diag[:, None] * candidates))
     alive = norms > 0.0
-    picked = [basis]
-    for step in range(extra):
+    size = start
+    for step in range(max(extra, 0)):
         if progress is not None:
-            progress(0.8 + 0.2 * step / max(extra, 1), f"orthonormalising basis ({step}/{extra})")
+            progress(0.8 + 0.2 * step / extra, f"orthonormalising basis ({step}/{extra})")
         remaining = np.sqrt(np.einsum("ik,i,ik->k", residual, m_diag, residual))
         alive &= remaining > drop_tol * norms                  # near-dependent: drop for good
         if not alive.any():
             break
         best = int(np.argmax(np.where(alive, remaining, -1.0)))
         vector = residual[:, best] / remaining[best]
-        current = np.hstack(picked)
-        vector -= current @ (current.T @ (m_diag * vector))    # second pass: orthogonality
+        vector -= out[:, :size] @ (out[:, :size].T @ (m_diag * vector))   # second pass
         vector /= np.sqrt(vector @ (m_diag * vector))
-        picked.append(vector[:, None])
+        out[:, size] = vector
+        size += 1
         alive[best] = False
         residual -= np.outer(vector, vector @ (m_diag[:, None] * residual))
-    return np.hstack(picked)
+    return out[:, :size]
+
+
+def _append_snapshot_modes(basis, snapshots, m_diag, count, drop_tol):
+    """basis plus up to ``count`` POD directions of the snapshots' part outside its span."""
+    if count <= 0 or snapshots.shape[1] == 0:
+        return basis
+    residual = snapshots - basis @ (basis.T @ (m_diag[:, None] * snapshots))
+    residual -= basis @ (basis.T @ (m_diag[:, None] * residual))        # second pass
+    # Method of snapshots: eigenvectors of the S x S mass Gram matrix give the POD modes.
+    gram = residual.T @ (m_diag[:, None] * residual)
+    values, vectors = np.linalg.eigh(0.5 * (gram + gram.T))
+    order = np.argsort(values)[::-1]
+    values, vectors = values[order], vectors[:, order]
+    if values[0] <= 0.0:
+        return basis
+    count = min(count, int(np.sum(values > drop_tol ** 2 * values[0])))   # energies: tol^2
+    modes = residual @ (vectors[:, :count] / np.sqrt(values[:count]))
+    # Re-orthonormalise (round-off of the Gram route) against the basis and each other.
+    modes -= basis @ (basis.T @ (m_diag[:, None] * modes))
+    modes = _mass_orthonormal(modes, m_diag)
+    return np.hstack([basis, modes])
+
+
+# ---------------------------------------------------------------------------------------------
+# Fast per-tet targets b(y) and Jacobians db/dy for the few cubature tets
+
+# d vec(b) / dy at y = 0 (9, 9): b ~ [omega]x + eps, the linear part of the RS map.
+LINEAR_TARGET = np.concatenate([rs.skew(np.eye(3)).transpose(1, 2, 0).reshape(9, 3),
+                                rs.STRAIN_BASIS.transpose(1, 2, 0).reshape(9, 6)], axis=1)
+# vec(R E_k) = vec(R) @ _STRAIN_MAP[:, k::6]: the strain columns of db/dy, linear in R.
+_STRAIN_MAP = np.einsum("rq,kts->rtqsk", np.eye(3), rs.STRAIN_BASIS).reshape(9, 54)
+# skew(e_i) @ F, row r = _EF_SIGN[i, r] * F[_EF_ROW[i, r]] (a cross product, no matmul).
+_EF_ROW = np.array([[0, 2, 1], [2, 0, 0], [1, 0, 0]])
+_EF_SIGN = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
+_SERIES_BELOW = 1e-2   # angle [rad] below which the Rodrigues coefficients use series
+
+
+def _rodrigues(t2):
+    """Coefficients (a, b, e), each (n,), of R and of the left Jacobian of SO(3).
+
+    t2 = |omega|^2, t = |omega|, K = skew(omega): R = I + a K + b K^2 and
+    J_l = I + b K + e K^2 with a = sin t / t, b = (1 - cos t) / t^2, e = (t - sin t) / t^3.
+    Below 1e-2 rad three-term series (truncation < 1e-13 relative) avoid the cancellation;
+    they are evaluated only where needed (few numpy calls: this runs per evaluation).
+    """
+    small = t2 < _SERIES_BELOW ** 2
+    any_small = small.any()
+    t_sq = np.where(small, 1.0, t2) if any_small else t2
+    t = np.sqrt(t_sq)
+    a = np.sin(t) / t
+    b = (1.0 - np.cos(t)) / t_sq
+    e = (1.0 - a) / t_sq
+    if any_small:
+        s = t2[small]
+        s2 = s * s
+        a[small] = 1.0 - s / 6.0 + s2 / 120.0
+        b[small] = 0.5 - s / 24.0 + s2 / 720.0
+        e[small] = 1.0 / 6.0 - s / 120.0 + s2 / 5040.0
+    return a, b, e
+
+
+def _rs_map(y, jacobian):
+    """vec(b(y)) (n, 9); with ``jacobian`` also R (n, 3, 3), the left Jacobian J_l (n, 3, 3)
+    and EF (n, 9, 3), where EF[:, :, i] = vec(skew(e_i) F), F = I + b = R (I + eps).
+
+    Written for a few hundred tets per call, with few numpy operations. With
+    K^2 = omega omega^T - t^2 I: R = (1 - b t^2) I + a K + b omega omega^T, and likewise J_l.
+    Rotation derivative: dR/d omega_i = skew(J_l e_i) R (J_l is the left Jacobian of SO(3)),
+    so d vec(b)/d omega = EF J_l, and d vec(b)/d eps_k = vec(R E_k) (linear in R).
+    """
+    n = len(y)
+    omega = y[:, :3]
+    t2 = np.einsum("ni,ni->n", omega, omega)
+    a, b, e = _rodrigues(t2)
+    K = rs.skew(omega)
+    outer = omega[:, :, None] * omega[:, None, :]
+    eye = np.eye(3)
+    R = (a[:, None, None] * K + b[:, None, None] * outer
+         + (1.0 - b * t2)[:, None, None] * eye)
+    F = R @ ((y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + eye)
+    target = F.reshape(n, 9) - eye.reshape(9)
+    if not jacobian:
+        return target
+    J_l = (b[:, None, None] * K + e[:, None, None] * outer
+           + (1.0 - e * t2)[:, None, None] * eye)
+    EF = (_EF_SIGN[None, :, :, None] * F[:, _EF_ROW]).reshape(n, 3, 9).transpose(0, 2, 1)
+    return target, R, J_l, EF
+
+
+def fast_targets(y, jacobian=False):
+    """vec(b(y)) (n, 9) as ``rs.rs_target``, and optionally d vec(b)/dy (n, 9, 9) as
+    ``rs.rs_target_jacobian``: the same quantities, computed by ``_rs_map`` (faster for the
+    few hundred cubature tets, and used by the deformer).
+    """
+    y = np.asarray(y, dtype=np.float64).reshape(-1, 9)
+    if not jacobian:
+        return _rs_map(y, False)
+    target, R, J_l, EF = _rs_map(y, True)
+    J = np.empty((len(y), 9, 9))
+    J[:, :, :3] = EF @ J_l
+    J[:, :, 3:] = (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6)
+    return target, J
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,8 +335,8 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
 class ReducedProjection:
     """The reduced least-squares fit q = (B^T L B)^-1 B^T G^T V vec(b) for a basis B.
 
-    Holds the Cholesky factor of the reduced Laplacian B^T L B (rB, rB) [m^3 per unit q^2,
-    from L = G^T (V kron I9) G], and gives per-tet projections ``tet_projections(tets)``
+    Holds the Cholesky factor of the reduced Laplacian B^T L B (rB, rB) [from
+    L = G^T (V kron I9) G], and gives per-tet projections ``tet_projections(tets)``
     (k, rB, 9) = P_e only for the tets asked for (never all of them: E rB 9 floats is large),
     and the exact all-tet fit ``exact_q(b)`` through the sparse scalar gradient of ``recon``.
     """
@@ -150,6 +351,9 @@ class ReducedProjection:
         # B^T L B = sum over coordinates of B_c^T L_s B_c (L = L_s kron I3).
         gram = sum(B3[:, c, :].T @ (recon.laplacian @ B3[:, c, :]) for c in range(3))
         self.gram_factor = scipy.linalg.cho_factor(0.5 * (gram + gram.T))
+        # B (B^T L B)^-1 (3N, rB): P_e and the exact fit then need no per-call solve.
+        self.solved_basis = scipy.linalg.cho_solve(self.gram_factor, self.basis.T).T
+        self._gradients = fem.shape_gradients(self.X, self.T)              # (E, 4, 3)
 
     @property
     def basis_size(self):
@@ -158,30 +362,42 @@ class ReducedProjection:
     def tet_projections(self, tets):
         """P_e (k, rB, 9) = (B^T L B)^-1 (G_e B)^T V_e for tet indices ``tets`` (k,)."""
         tets = np.asarray(tets, dtype=np.int64)
-        grads = fem.shape_gradients(self.X, self.T[tets])                    # (k, 4, 3)
-        B_nodes = self.basis.reshape(self.num_nodes, 3, -1)[self.T[tets]]     # (k, 4, 3, rB)
-        GB = np.einsum("kaj,kair->rkij", grads, B_nodes)                       # (rB, k, 3, 3)
-        GB *= self.recon.volumes[tets][None, :, None, None]
-        P = scipy.linalg.cho_solve(self.gram_factor, GB.reshape(self.basis_size, -1))
-        return np.ascontiguousarray(P.reshape(self.basis_size, len(tets), 9).transpose(1, 0, 2))
+        r = self.basis_size
+        nodes = self.solved_basis.reshape(self.num_nodes, 3 * r)[self.T[tets]]  # (k, 4, 3 rB)
+        # (G_e B~)[i, j, :] = sum_a grad_a[j] B~[node a, i, :], as a batched (3 x 4)(4 x 3 rB).
+        GB = np.swapaxes(self._gradients[tets], 1, 2) @ nodes                    # (k, j, (i, r))
+        GB = GB.reshape(len(tets), 3, 3, r).transpose(0, 3, 2, 1)                 # (k, r, i, j)
+        P = GB.reshape(len(tets), r, 9) * self.recon.volumes[tets][:, None, None]
+        return np.ascontiguousarray(P)
 
     def exact_q(self, b):
         """Reduced coordinates (rB,) or (F, rB) fitting targets b (E, 3, 3) or (F, E, 3, 3).
 
         q = (B^T L B)^-1 B^T G^T V vec(b), the all-tet (no cubature) reduced reconstruction; for
-        several poses the sparse product handles all of them at once.
+        several poses the sparse product handles all of them at once. b may also be (.., E, 9).
         """
         b = np.asarray(b, dtype=np.float64)
-        single = b.ndim == 3
-        b = b.reshape(-1, len(self.T), 3, 3)
+        n_tets = len(self.T)
+        single = b.size == 9 * n_tets
+        b = b.reshape(-1, n_tets, 3, 3)
         frames = len(b)
         weighted = self.recon.volumes[None, :, None, None] * b                # (F, E, 3, 3)
         # column (f, i) holds b[f, :, i, :] flattened tet-major: the rhs of coordinate i.
-        stacked = weighted.transpose(1, 3, 0, 2).reshape(3 * len(self.T), 3 * frames)
+        stacked = weighted.transpose(1, 3, 0, 2).reshape(3 * n_tets, 3 * frames)
         rhs = np.asarray(self.recon.gradient.T @ stacked)                      # (N, 3F)
         rhs = rhs.reshape(self.num_nodes, frames, 3).transpose(1, 0, 2).reshape(frames, -1)
-        q = scipy.linalg.cho_solve(self.gram_factor, (rhs @ self.basis).T).T   # (F, rB)
+        q = rhs @ self.solved_basis                                             # (F, rB)
         return q[0] if single else q
+
+    def linear_map(self, modal_rs):
+        """(rB, m) exact reduced coordinates of the linear targets [omega^i]x + eps^i per mode.
+
+        For modal_rs = Q W these targets are grad(w_i), so this is the L-projection of W on B
+        (the identity on W's own columns when B starts with them).
+        """
+        modal_rs = np.asarray(modal_rs, dtype=np.float64)
+        linear = np.einsum("ij,ejm->mei", LINEAR_TARGET, modal_rs)               # (m, E, 9)
+        return self.exact_q(linear).T
 
 
 # ---------------------------------------------------------------------------------------------
@@ -189,6 +405,16 @@ class ReducedProjection:
 
 class ReducedRS:
     """Reduced RS deformer z (m,) -> q (rB,) -> u = B q (SPEC section 4).
+
+    Choice (beyond SPEC 4): the linear part of the RS map is integrated exactly and only the
+    nonlinear remainder by cubature,
+
+        q(z) = A z + sum_C w_e P_e vec(b_e(y_e) - [omega_e]x - eps_e),
+
+    with A (rB, m) = ``ReducedProjection.linear_map`` the exact all-tet fit of the linear
+    targets. Small poses and the Jacobian at rest are therefore exact (q = z on the modes'
+    coordinates), and the cubature spends its tets on the rotation nonlinearity. Evaluated
+    as q = offset z + (w P) vec(b) with offset = A - (w P) vec(linear targets) (rB, m).
 
     Attributes:
       num_coords           m, number of modal coordinates z.
@@ -198,6 +424,7 @@ class ReducedRS:
       cubature_weights     (C,) float64, >= 0.
       projections          P_C (C, rB, 9) for the cubature tets only.
       modal_rs_cubature    (C, 9, m) linear RS of the modes on the cubature tets.
+      linear_map           A (rB, m).
 
     ``exact_q`` (the all-tet fit) needs the full mesh: it works on objects made by ``build``
     (which keeps a ``ReducedProjection`` and the full modal_rs by reference), or after
@@ -205,12 +432,13 @@ class ReducedRS:
     """
 
     def __init__(self, basis, cubature_tets, cubature_weights, projections, modal_rs_cubature,
-                 projection=None, modal_rs=None):
+                 linear_map, projection=None, modal_rs=None):
         self.basis = None if basis is None else np.asarray(basis, dtype=np.float64)
         self.cubature_tets = np.asarray(cubature_tets, dtype=np.int64).reshape(-1)
         self.cubature_weights = np.asarray(cubature_weights, dtype=np.float64).reshape(-1)
         self.projections = np.asarray(projections, dtype=np.float64)
         self.modal_rs_cubature = np.ascontiguousarray(modal_rs_cubature, dtype=np.float64)
+        self.linear_map = np.asarray(linear_map, dtype=np.float64)
         self.num_coords = self.modal_rs_cubature.shape[2]
         self.basis_size = self.projections.shape[1]
         # Weighted projections flattened to (rB, 9C): q = wP @ vec(b) over all cubature tets
@@ -218,6 +446,16 @@ class ReducedRS:
         self._weighted = np.ascontiguousarray(
             (self.cubature_weights[:, None, None] * self.projections)
             .transpose(1, 0, 2).reshape(self.basis_size, -1))
+        linear = np.einsum("ij,cjm->cim", LINEAR_TARGET, self.modal_rs_cubature)
+        self._offset = self.linear_map - self._weighted @ linear.reshape(-1, self.num_coords)
+        # Per cubature tet: d omega/dz (C, 3, m) and d(I + eps)/dz as (C, 3, 3m), so the chain
+        # (db/dy)(QW) = EF J_l d omega/dz + vec(R d eps/dz) is three batched products.
+        m = self.num_coords
+        self._modal_rs_flat = self.modal_rs_cubature.reshape(-1, m)                # (9C, m)
+        self._omega_rate = np.ascontiguousarray(self.modal_rs_cubature[:, :3, :])
+        self._strain_rate = np.ascontiguousarray(np.einsum(
+            "ckm,kts->ctsm", self.modal_rs_cubature[:, 3:, :], rs.STRAIN_BASIS)
+            .reshape(-1, 3, 3 * m))
         self._projection, self._modal_rs = projection, modal_rs
 
     @classmethod
@@ -231,7 +469,8 @@ class ReducedRS:
         tets = np.asarray(cubature_tets, dtype=np.int64)
         modal_rs = np.asarray(modal_rs, dtype=np.float64)
         return cls(projection.basis, tets, cubature_weights, projection.tet_projections(tets),
-                   modal_rs[tets], projection=projection, modal_rs=modal_rs)
+                   modal_rs[tets], projection.linear_map(modal_rs), projection=projection,
+                   modal_rs=modal_rs)
 
     def attach_full(self, X, T, modal_rs, recon):
         """Give a loaded deformer the full-mesh data ``exact_q`` needs (requires ``basis``)."""
@@ -241,15 +480,12 @@ class ReducedRS:
     # -- evaluation ---------------------------------------------------------------------------
 
     def q(self, z):
-        """Reduced coordinates q (rB,) of modal coordinates z (m,): sum_C w_e P_e vec(b_e)."""
-        y = self.modal_rs_cubature @ np.asarray(z, dtype=np.float64)             # (C, 9)
-        return self._weighted @ rs.rs_target(y).reshape(-1)
+        """Reduced coordinates q (rB,) of modal coordinates z (m,) (class docstring)."""
+        return self.q_batch(np.asarray(z, dtype=np.float64)[None])[0]
 
     def q_jacobian(self, z):
-        """dq/dz (rB, m) = sum_C w_e P_e (db/dy)_e (QW)_e (analytic, SPEC section 4)."""
-        y = self.modal_rs_cubature @ np.asarray(z, dtype=np.float64)
-        chain = rs.rs_target_jacobian(y) @ self.modal_rs_cubature                # (C, 9, m)
-        return self._weighted @ chain.reshape(-1, self.num_coords)
+        """dq/dz (rB, m) = offset + sum_C w_e P_e (db/dy)_e (QW)_e (analytic, SPEC section 4)."""
+        return self.q_jacobian_batch(np.asarray(z, dtype=np.float64)[None])[0]
 
     def q_batch(self, Z, chunk=256):
         """q for many frames: Z (F, m) -> (F, rB); frames are processed ``chunk`` at a time."""
@@ -257,22 +493,16 @@ class ReducedRS:
         out = np.empty((len(Z), self.basis_size))
         for start in range(0, len(Z), chunk):                       # bounds temporary memory
             Zc = Z[start:start + chunk]
-            y = np.einsum("ckm,fm->fck", self.modal_rs_cubature, Zc).reshape(-1, 9)
-            out[start:start + chunk] = rs.rs_target(y).reshape(len(Zc), -1) @ self._weighted.T
+            out[start:start + chunk] = self._targets(Zc) @ self._weighted.T + Zc @ self._offset.T
         return out
 
     def q_jacobian_batch(self, Z, chunk=64):
         """dq/dz for many frames: Z (F, m) -> (F, rB, m)."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
-        m = self.num_coords
-        out = np.empty((len(Z), self.basis_size, m))
+        out = np.empty((len(Z), self.basis_size, self.num_coords))
         for start in range(0, len(Z), chunk):
-            Zc = Z[start:start + chunk]
-            y = np.einsum("ckm,fm->fck", self.modal_rs_cubature, Zc).reshape(-1, 9)
-            J = rs.rs_target_jacobian(y).reshape(len(Zc), -1, 9, 9)              # (F, C, 9, 9)
-            chain = (J @ self.modal_rs_cubature[None]).reshape(len(Zc), -1, m)    # (F, 9C, m)
-            out[start:start + chunk] = self._weighted @ chain
-        return out
+            out[start:start + chunk] = self._weighted @ self._chains(Z[start:start + chunk])
+        return out + self._offset
 
     def exact_q(self, z):
         """All-tet reduced fit (rB,) of z (m,), no cubature (training and tests).
@@ -291,7 +521,8 @@ class ReducedRS:
 
         rows: optional (3k, rB) rows of a linear map of B, e.g. (Phi B) for render vertices or
         B restricted to some vertices (``basis_rows``). The caller precomputes it once: this
-        is what makes partial reconstruction cost O(k rB) instead of O(N rB).
+        is what makes partial reconstruction cost O(k rB) instead of O(N rB). For a few
+        vertices evaluated many times, ``row_evaluator`` is faster still.
         """
         return _apply_rows(self.basis if rows is None else rows, self.q(z))
 
@@ -299,12 +530,39 @@ class ReducedRS:
         """d u_rows / dz (3k, m) = rows @ dq/dz for precomputed rows (3k, rB)."""
         return np.asarray(rows) @ self.q_jacobian(z)
 
+    def row_evaluator(self, rows):
+        """``RowEvaluator`` for fixed rows (3k, rB): the fastest path for a few vertices."""
+        return RowEvaluator(self, rows)
+
+    def _rs_coordinates(self, Z):
+        """y (F C, 9) at the cubature tets of poses Z (F, m)."""
+        return (Z @ self._modal_rs_flat.T).reshape(-1, 9)
+
+    def _targets(self, Z):
+        """vec b (F, 9C) of poses Z (F, m) at the cubature tets."""
+        return _rs_map(self._rs_coordinates(Z), False).reshape(len(Z), -1)
+
+    def _chains(self, Z):
+        """(db/dy)(QW) (F, 9C, m) at the cubature tets for poses Z (F, m)."""
+        return self._targets_and_chains(Z)[1]
+
+    def _targets_and_chains(self, Z):
+        """vec b (F, 9C) and (db/dy)(QW) (F, 9C, m), sharing the rotations."""
+        F, m = len(Z), self.num_coords
+        target, R, J_l, EF = _rs_map(self._rs_coordinates(Z), True)
+        C = len(self.cubature_tets)
+        chain = (R.reshape(F, C, 3, 3) @ self._strain_rate).reshape(F, C, 9, m)
+        spatial = J_l.reshape(F, C, 3, 3) @ self._omega_rate                # J_l d omega/dz
+        chain += EF.reshape(F, C, 9, 3) @ spatial
+        return target.reshape(F, -1), chain.reshape(F, -1, m)
+
     # -- cache --------------------------------------------------------------------------------
 
     def save_arrays(self, include_basis=True):
         """dict of numpy arrays for ``cache.save``; B is optional (it is 3N x rB)."""
         arrays = dict(cubature_tets=self.cubature_tets, cubature_weights=self.cubature_weights,
-                      projections=self.projections, modal_rs_cubature=self.modal_rs_cubature)
+                      projections=self.projections, modal_rs_cubature=self.modal_rs_cubature,
+                      linear_map=self.linear_map)
         if include_basis and self.basis is not None:
             arrays["basis"] = self.basis
         return arrays
@@ -313,13 +571,14 @@ class ReducedRS:
     def from_arrays(cls, arrays):
         """Inverse of ``save_arrays`` (an evaluation-only deformer, see the class docstring)."""
         return cls(arrays.get("basis"), arrays["cubature_tets"], arrays["cubature_weights"],
-                   arrays["projections"], arrays["modal_rs_cubature"])
+                   arrays["projections"], arrays["modal_rs_cubature"], arrays["linear_map"])
 
 
 class LinearDeformer:
     """Linear modal motion with the ReducedRS interface: q(z) = z, dq/dz = I, B = W.
 
-    num_coords: m; basis: optional W (3N, m) for ``displacement`` without rows.
+    num_coords: m; basis: optional W (3N, m) for ``displacement`` without rows. The baseline
+    that reduced RS is compared with (it inflates large bends instead of curling them).
     """
 
     def __init__(self, num_coords, basis=None):
@@ -328,28 +587,40 @@ class LinearDeformer:
         self.basis_size = self.num_coords
 
     def q(self, z):
+        """q = z (m,)."""
         return np.array(z, dtype=np.float64).reshape(self.num_coords)
 
     def q_jacobian(self, z):
+        """dq/dz = I (m, m)."""
         return np.eye(self.num_coords)
 
     def q_batch(self, Z):
+        """Q = Z (F, m)."""
         return np.array(np.atleast_2d(Z), dtype=np.float64)
 
     def q_jacobian_batch(self, Z):
+        """(F, m, m) identities."""
         return np.broadcast_to(np.eye(self.num_coords),
                                (len(np.atleast_2d(Z)), self.num_coords, self.num_coords)).copy()
 
     def exact_q(self, z):
+        """Same as ``q`` (or ``q_batch`` for Z (F, m)): nothing is approximated."""
         return self.q(z) if np.ndim(z) == 1 else self.q_batch(z)
 
     def displacement(self, z, rows=None):
+        """W z as (N, 3), or rows @ z as (k, 3) for rows (3k, m) [m]."""
         return _apply_rows(self.basis if rows is None else rows, self.q(z))
 
     def displacement_jacobian(self, z, rows):
+        """d u_rows / dz = rows (3k, m), whatever z."""
         return np.array(rows, dtype=np.float64)
 
+    def row_evaluator(self, rows):
+        """``RowEvaluator`` for fixed rows (3k, m)."""
+        return RowEvaluator(self, rows)
+
     def save_arrays(self, include_basis=True):
+        """dict of numpy arrays for ``cache.save``."""
         arrays = dict(num_coords=np.array(self.num_coords))
         if include_basis and self.basis is not None:
             arrays["basis"] = self.basis
@@ -357,7 +628,65 @@ class LinearDeformer:
 
     @classmethod
     def from_arrays(cls, arrays):
+        """Inverse of ``save_arrays``."""
         return cls(int(arrays["num_coords"]), arrays.get("basis"))
+
+
+class RowEvaluator:
+    """Partial reconstruction u_J (k, 3) and d u_J / dz (3k, m) for fixed rows (3k, rB).
+
+    rows: e.g. ``basis_rows(B, J)`` or (Phi B) restricted to some render vertices. When
+    3k < rB the rows are folded into the weighted projections once, R = rows (w P) (3k, 9C),
+    so an evaluation is u_J = R vec(b) + (rows offset) z and d u_J/dz = R (db/dy)(QW) + rows
+    offset, never forming q; otherwise it goes through q (rB,) and dq/dz. Batch methods take
+    Z (F, m).
+    """
+
+    def __init__(self, deformer, rows):
+        self.deformer = deformer
+        self.rows = np.ascontiguousarray(rows, dtype=np.float64)
+        self.fused = isinstance(deformer, ReducedRS) and len(self.rows) < deformer.basis_size
+        if self.fused:
+            self._folded = self.rows @ deformer._weighted                        # (3k, 9C)
+            self._offset = self.rows @ deformer._offset                          # (3k, m)
+
+    def displacement(self, z):
+        """u_J (k, 3) [m] of z (m,)."""
+        return self.displacement_batch(np.asarray(z, dtype=np.float64)[None])[0]
+
+    def evaluate(self, z):
+        """(u_J (k, 3), d vec(u_J)/dz (3k, m)) of z (m,), sharing the work of both."""
+        u, J = self.evaluate_batch(np.asarray(z, dtype=np.float64)[None])
+        return u[0], J[0]
+
+    def evaluate_batch(self, Z):
+        """(u_J (F, k, 3), d vec(u_J)/dz (F, 3k, m)) of Z (F, m)."""
+        Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+        if not self.fused:
+            return self.displacement_batch(Z), self.jacobian_batch(Z)
+        target, chain = self.deformer._targets_and_chains(Z)
+        u = target @ self._folded.T + Z @ self._offset.T
+        return u.reshape(len(Z), -1, 3), self._folded @ chain + self._offset
+
+    def jacobian(self, z):
+        """d vec(u_J) / dz (3k, m) [m per unit z]."""
+        return self.jacobian_batch(np.asarray(z, dtype=np.float64)[None])[0]
+
+    def displacement_batch(self, Z):
+        """u_J (F, k, 3) of Z (F, m)."""
+        Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+        if self.fused:
+            u = self.deformer._targets(Z) @ self._folded.T + Z @ self._offset.T
+        else:
+            u = self.deformer.q_batch(Z) @ self.rows.T
+        return u.reshape(len(Z), -1, 3)
+
+    def jacobian_batch(self, Z):
+        """d vec(u_J) / dz (F, 3k, m) of Z (F, m)."""
+        Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+        if self.fused:
+            return self._folded @ self.deformer._chains(Z) + self._offset
+        return self.rows @ self.deformer.q_jacobian_batch(Z)
 
 
 def basis_rows(B, vertices):
@@ -372,3 +701,74 @@ def _apply_rows(rows, q):
     if rows is None:
         raise ValueError("no basis: pass rows (3k, rB) or build the deformer with its basis")
     return (np.asarray(rows) @ q).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Everything at once
+
+def default_basis_size(num_modes, cap=160):
+    """Default rB for m modes: m + all m(m+1)/2 pairs + as many snapshot directions, <= cap.
+
+    m = 10 gives 120, m >= 14 gives the cap. See ``prepare_reduced_rs`` for measurements.
+    """
+    m = int(num_modes)
+    return min(int(cap), m + m * (m + 1))
+
+
+def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_size=None,
+                       order=3, snapshot_size=None, num_snapshots=200, max_tets=150, tol=2e-3,
+                       num_poses=80, candidates=400, seed=0, progress=None):
+    """Build a ``ReducedRS`` for modes W (3N, m): returns (deformer, info).
+
+    Steps (progress fractions in brackets): training poses (``cubature.training_poses``, up
+    to 120 deg); full RS snapshots of ``num_snapshots`` of them [0, 0.2]; the basis
+    (``second_order_basis`` with snapshot enrichment, ``max_size`` columns) [0.2, 0.5]; the
+    cubature on ``num_poses`` other poses (``cubature.train_reduced_rs_cubature``) [0.5, 1].
+    max_size None: ``default_basis_size(m)``. Measured on a pinned 4:1:1 bar with 20 modes and
+    held-out poses up to 90 deg (strain <= 100 %): rB = 120 leaves up to about 1 % of the
+    bounding-box diagonal, rB = 160 about 0.75 %; 150 cubature tets add little to that (60
+    tets: about 2 %). With 10 modes rB = 120 is plenty (0.3 % before cubature), and a larger
+    basis only needs more cubature tets. Evaluating a few vertices costs the same whatever
+    rB; it grows with the cubature size.
+    masses (N,) [kg]; eigenvalues (m,) [rad^2/s^2]; recon: the body's PoissonReconstruction;
+    modal_rs (E, 9, m) default ``rs.linear_rs(rs.rs_operator(X, T), W)``; seed: for the poses
+    and the candidate draws (same inputs give the same result).
+    progress(fraction, message): optional; raising inside it aborts the whole preparation.
+    info: ``seconds`` per stage, ``history``/``relative_residual`` of the cubature fit, and the
+    training poses ``snapshot_poses``, ``cubature_poses``.
+    """
+    from . import cubature                                      # cubature builds on this module
+
+    if modal_rs is None:
+        modal_rs = rs.linear_rs(rs.rs_operator(X, T), W)
+    rng = np.random.default_rng(seed)
+    num_modes = modal_rs.shape[2]
+    max_size = default_basis_size(num_modes) if max_size is None else max_size
+
+    def stage(lo, hi):
+        return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
+
+    seconds = {}
+    start = time.perf_counter()
+    snapshot_poses = cubature.training_poses(num_modes, eigenvalues, num_snapshots, rng,
+                                             modal_rs=modal_rs)
+    snapshots = rs_snapshots(modal_rs, recon, snapshot_poses, stage(0.0, 0.2))
+    seconds["snapshots"] = time.perf_counter() - start
+    start = time.perf_counter()
+    B = second_order_basis(X, T, masses, modal_rs, recon, W, max_size=max_size, order=order,
+                           snapshots=snapshots, snapshot_size=snapshot_size,
+                           progress=stage(0.2, 0.5))
+    del snapshots
+    seconds["basis"] = time.perf_counter() - start
+    start = time.perf_counter()
+    poses = cubature.training_poses(num_modes, eigenvalues, num_poses, rng, modal_rs=modal_rs)
+    tets, weights, fit = cubature.train_reduced_rs_cubature(
+        X, T, modal_rs, B, recon, poses, max_tets=max_tets, tol=tol, rng=rng,
+        candidates=candidates, progress=stage(0.5, 1.0))
+    deformer = ReducedRS.build(X, T, modal_rs, B, recon, tets, weights,
+                               projection=fit["projection"])
+    seconds["cubature"] = time.perf_counter() - start
+    info = dict(seconds=seconds, history=fit["history"],
+                relative_residual=fit["relative_residual"], snapshot_poses=snapshot_poses,
+                cubature_poses=poses)
+    return deformer, info

@@ -8,6 +8,13 @@ import numpy as np
 MESHES = pathlib.Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
 
 
+def quick_reduced(obj):
+    """Small reduced-RS settings for tests that do not measure its accuracy (faster prepare)."""
+    settings = obj.rs_elastic
+    settings.basis_size, settings.cubature_tets, settings.training_poses = 30, 60, 24
+    return obj
+
+
 def link_mesh(name, vertices, faces):
     mesh = bpy.data.meshes.new(name)
     mesh.from_pydata([tuple(v) for v in vertices], [], [tuple(f) for f in faces])
@@ -15,7 +22,7 @@ def link_mesh(name, vertices, faces):
     obj = bpy.data.objects.new(name, mesh)
     bpy.context.scene.collection.objects.link(obj)
     make_active(obj)
-    return obj
+    return quick_reduced(obj)
 
 
 def make_active(obj):
@@ -44,7 +51,7 @@ def make_bar(name="Bar", length=4.0, width=1.0, pin_end=True, cuts=1):
         group = obj.vertex_groups.new(name="Pin")
         group.add([int(i) for i in np.flatnonzero(co[:, 0] < 1e-9)], 1.0, 'REPLACE')
         obj.rs_elastic.pin_group = "Pin"
-    return obj
+    return quick_reduced(obj)
 
 
 def read_off(path):
@@ -66,7 +73,7 @@ def import_shared(name):
     bpy.ops.wm.obj_import(filepath=str(path))
     obj = bpy.context.selected_objects[0]
     make_active(obj)
-    return obj
+    return quick_reduced(obj)
 
 
 def vertices(obj):

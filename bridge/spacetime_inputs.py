@@ -1,0 +1,144 @@
+"""Gather a space-time edit from the scene (main thread) into solver arrays."""
+import dataclasses
+
+import numpy as np
+
+from ..solver import fem, rs, spacetime
+from . import bake, constraints, rs_tools, scene
+from .scene import InputError
+
+
+@dataclasses.dataclass
+class SpaceTimeJob:
+    object_name: str
+    frames: list                 # scene frames, ascending
+    problem: spacetime.SpaceTimeProblem
+    optimise_material: bool
+    iterations: int
+    tools: rs_tools.RSTools
+    rest: np.ndarray             # (n, 3) base vertices
+    track_slices: list           # per handle track: (handle index in settings, slice of constraints)
+    warnings: list
+
+
+def frame_range(obj, blender_scene):
+    settings = obj.rs_elastic
+    if settings.use_scene_range:
+        start, end = blender_scene.frame_start, blender_scene.frame_end
+    else:
+        start, end = settings.frame_start, settings.frame_end
+    if end - start + 1 < 3:
+        raise InputError(f"The frame range {start}–{end} has fewer than 3 frames")
+    return list(range(start, end + 1))
+
+
+def prepared_tools(obj):
+    tools = rs_tools.for_object(obj)
+    if tools is None or tools.deformer is None:
+        raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")
+    return tools
+
+
+def poses_to_modal(tools, points_per_pose):
+    """ẑ (k, m) of render-vertex poses (k, n, 3): carried to the nodes, turned into RS
+    coordinates (each pose's rotation branch chained to the previous one) and fitted."""
+    X, T = tools.nodes, tools.tets
+    volumes = np.abs(fem.tet_volumes(X, T))
+    reference, fitted = None, []
+    for points in points_per_pose:
+        nodes = tools.pose_transfer.nodes_from_points(points)
+        y, _ = rs.pose_to_rs(X, T, nodes, reference=reference, neighbours=tools.neighbours)
+        fitted.append(spacetime.pose_to_modal(tools.modal_rs, volumes, y))
+        reference = y[:, :3]
+    return np.array(fitted).reshape(len(fitted), -1)
+
+
+def _key_positions(obj, name):
+    block = obj.data.shape_keys.key_blocks[name]
+    co = np.empty(len(block.data) * 3)
+    block.data.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def gather(obj, blender_scene):
+    """Validate and collect everything the solve needs. Raises InputError."""
+    scene.require_mesh_object(obj)
+    tools = prepared_tools(obj)
+    settings = obj.rs_elastic
+    frames = frame_range(obj, blender_scene)
+    first = frames[0]
+    rest = scene.base_vertices(obj)
+    tracks, warnings = constraints.read_handles(obj, blender_scene, frames)
+
+    handle_parts, track_slices, count = [], [], 0
+    handle_index = {h.empty.name: i for i, h in enumerate(settings.handles) if h.empty is not None}
+    for track in tracks:
+        rows, rest_centroid = spacetime.handle_geometry(rest, tools.surface_basis, track.vertices)
+        c = len(track.frames)
+        handle_parts.append((track.frames - first, np.repeat(rows[None], c, axis=0),
+                             np.repeat(rest_centroid[None], c, axis=0), track.targets,
+                             np.full(c, track.weight)))
+        track_slices.append((handle_index[track.name], slice(count, count + c)))
+        count += c
+
+    key_frames, key_poses = [], []
+    for frame, name in constraints.read_pose_keys(obj, frames):
+        key_frames.append(frame)
+        key_poses.append(_key_positions(obj, name))
+    take_weights = []
+    if settings.use_take:
+        take_frames, take = bake.take_poses(obj)
+        if not take_frames:
+            raise InputError(f"'{obj.name}' has no take: bake, then Keep Bake as Take")
+        inside = [i for i, f in enumerate(take_frames) if frames[0] <= f <= frames[-1]]
+        key_frames += [take_frames[i] for i in inside]
+        key_poses += [take[i] for i in inside]
+        take_weights = [settings.take_weight] * len(inside)
+    if not handle_parts and not key_frames:
+        raise InputError(f"Nothing to solve for on '{obj.name}': key a handle's Empty, key a "
+                         "shape key to 1 on a frame, or edit a take"
+                         + (f" ({'; '.join(warnings)})" if warnings else ""))
+
+    modes = tools.body.linear_modes
+    eigenvalues = modes.eigenvalues[:tools.deformer.num_coords]
+    damping = spacetime.rayleigh_damping(eigenvalues, settings.damping_mass,
+                                         settings.damping_stiffness)
+    h = blender_scene.render.fps_base / blender_scene.render.fps
+    handles = None
+    if handle_parts:
+        handles = spacetime.HandleConstraints(*(np.concatenate(parts)
+                                                for parts in zip(*handle_parts)))
+    gamma, keyframe_weight = spacetime.suggest_weights(
+        h, eigenvalues, damping, tools.deformer,
+        None if handles is None else handles.rows, tightness=settings.tightness)
+    keyframes = None
+    if key_frames:
+        weights = np.r_[np.ones(len(key_frames) - len(take_weights)), take_weights]
+        keyframes = spacetime.Keyframes(np.array(key_frames) - first,
+                                        poses_to_modal(tools, key_poses),
+                                        keyframe_weight * weights)
+    problem = spacetime.SpaceTimeProblem(
+        frames=len(frames), h=h, eigenvalues=eigenvalues, damping=damping,
+        deformer=tools.deformer, handles=handles, keyframes=keyframes, gamma=gamma,
+        fix_start=not settings.use_take)
+    return SpaceTimeJob(obj.name, frames, problem, settings.optimize_material,
+                        settings.iterations, tools, rest, track_slices, warnings)
+
+
+def solve(job_inputs, job):
+    """Worker thread: run the solver and turn its result into render-vertex poses."""
+    def progress(iteration, objective):
+        job.step(min(0.95, iteration / max(job_inputs.iterations, 1)),
+                 f"iteration {iteration}, objective {objective:.4g}")
+
+    try:
+        result = spacetime.solve(job_inputs.problem, optimise_material=job_inputs.optimise_material,
+                                 iterations=job_inputs.iterations, callback=progress,
+                                 should_cancel=job.is_cancelled)
+    except spacetime.SolveCancelled:
+        from .jobs import Cancelled
+        raise Cancelled() from None
+    q = job_inputs.tools.deformer.q_batch(result.inputs)                 # (F, rB)
+    displacement = q @ job_inputs.tools.surface_basis.T                    # (F, 3n)
+    poses = job_inputs.rest[None] + displacement.reshape(len(q), -1, 3)
+    return result, poses

@@ -1,0 +1,28 @@
+"""Remove the body's bake (its RS Bake shape keys and their keyframes)."""
+import bpy
+
+from ..bridge import bake, scene
+from ..bridge.scene import InputError
+
+
+class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
+    """Remove the baked shape keys and their keyframes; your own keys stay"""
+    bl_idname = "rs_elastic.clear_bake"
+    bl_label = "Clear Bake"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def execute(self, context):
+        try:
+            obj = scene.require_mesh_object(context.active_object)
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        removed = bake.clear_bake(obj)
+        if removed == 0:
+            self.report({'WARNING'}, f"'{obj.name}' has no bake")
+            return {'CANCELLED'}
+        self.report({'INFO'}, f"Removed {removed} baked frames from '{obj.name}'")
+        return {'FINISHED'}
+
+
+CLASSES = (RS_ELASTIC_OT_clear_bake,)

@@ -1,0 +1,46 @@
+"""Solve a space-time edit of the active body and bake it into shape keys."""
+import bpy
+import numpy as np
+
+from ..bridge import bake, jobs, spacetime_inputs
+
+
+class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
+    """Find the motion with the least control force that meets the handles and pose keys, and
+    bake it (replacing the previous bake)"""
+    bl_idname = "rs_elastic.solve_spacetime"
+    bl_label = "Solve and Bake"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def make_work(self, context):
+        inputs = spacetime_inputs.gather(context.active_object, context.scene)
+        self._inputs = inputs
+        return lambda job: spacetime_inputs.solve(inputs, job)
+
+    def apply(self, context, output, job):
+        result, poses = output
+        inputs = self._inputs
+        obj = bpy.data.objects[inputs.object_name]
+        settings = obj.rs_elastic
+        for message in inputs.warnings:
+            self.report({'WARNING'}, message)
+        active = bake.write_bake(obj, inputs.frames, poses)
+        if active:
+            self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
+                                     "top of the bake")
+        scale = float(np.mean(obj.matrix_world.to_scale()))
+        for handle in settings.handles:
+            handle.residual = -1.0
+        for index, rows in inputs.track_slices:
+            settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
+        settings.solve_history.clear()
+        for _, _, objective in result.history:
+            settings.solve_history.add().value = float(objective)
+        worst = max((h.residual for h in settings.handles), default=-1.0)
+        self.report({'INFO'}, f"'{obj.name}': baked frames {inputs.frames[0]}–{inputs.frames[-1]}"
+                              f" in {result.iterations} iterations"
+                              + (f", largest handle miss {worst:.2g} m" if worst >= 0 else ""))
+        return {'FINISHED'}
+
+
+CLASSES = (RS_ELASTIC_OT_solve_spacetime,)

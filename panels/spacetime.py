@@ -1,0 +1,73 @@
+"""Space-time editing: handles, the solve and its bake."""
+import bpy
+
+from ..bridge import bake
+from .body import RSElasticPanel
+
+
+class RS_ELASTIC_UL_handles(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        empty = item.empty
+        deleted = empty is None or context.scene.objects.get(empty.name) is None
+        row = layout.row(align=True)
+        row.label(text=empty.name if empty is not None else "(deleted)",
+                  icon='ERROR' if deleted else 'EMPTY_AXIS')
+        row.label(text=item.vertex_group, icon='GROUP_VERTEX')
+        if item.residual >= 0.0:
+            row.label(text=f"{item.residual:.2g} m")
+
+
+class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
+    bl_label = "Space-Time Editing"
+    bl_parent_id = "RS_ELASTIC_PT_body"
+
+    def draw(self, context):
+        obj = context.active_object
+        settings = obj.rs_elastic
+        layout = self.layout
+        row = layout.row()
+        row.template_list("RS_ELASTIC_UL_handles", "", settings, "handles", settings,
+                          "active_handle", rows=3)
+        col = row.column(align=True)
+        col.operator("rs_elastic.add_handle", icon='ADD', text="")
+        col.operator("rs_elastic.remove_handle", icon='REMOVE', text="")
+        if 0 <= settings.active_handle < len(settings.handles):
+            handle = settings.handles[settings.active_handle]
+            box = layout.box()
+            box.prop(handle, "empty")
+            box.prop_search(handle, "vertex_group", obj, "vertex_groups")
+            row = box.row()
+            row.prop(handle, "follow")
+            row.prop(handle, "weight")
+
+        layout.use_property_split = True
+        layout.prop(settings, "use_scene_range")
+        if not settings.use_scene_range:
+            row = layout.row(align=True)
+            row.prop(settings, "frame_start")
+            row.prop(settings, "frame_end")
+        layout.prop(settings, "tightness")
+        layout.prop(settings, "damping_mass")
+        layout.prop(settings, "damping_stiffness")
+        layout.prop(settings, "iterations")
+        layout.prop(settings, "optimize_material")
+        layout.prop(settings, "use_take")
+        if settings.use_take:
+            layout.prop(settings, "take_weight")
+
+        layout.use_property_split = False
+        layout.operator("rs_elastic.solve_spacetime", icon='PLAY')
+        row = layout.row(align=True)
+        row.operator("rs_elastic.keep_take", icon='PINNED')
+        row.operator("rs_elastic.clear_bake", icon='TRASH')
+        frames = bake.bake_frames(obj)
+        if frames:
+            layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')
+        if len(settings.solve_history):
+            col = layout.column(align=True)
+            col.label(text="Objective per iteration:")
+            for i, item in enumerate(settings.solve_history):
+                col.label(text=f"{i:3d}   {item.value:.6g}")
+
+
+CLASSES = (RS_ELASTIC_UL_handles, RS_ELASTIC_PT_spacetime)

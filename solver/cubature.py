@@ -1,0 +1,282 @@
+"""Cubature training for reduced RS: SPEC.md section 4 (An, Kim & James 2008).
+
+A cubature replaces a sum over all E tets by a weighted sum over a few, chosen so that it
+reproduces the full sum on training poses. ``greedy_nnls`` is the generic greedy non-negative
+least-squares selection (usable for any per-element quantity, e.g. energy cubature);
+``train_reduced_rs_cubature`` applies it to the reduced RS fit q(z) = sum_e P_e vec(b_e(y_e)).
+
+Choices written down here:
+
+- Every weight re-fit is on all poses, kept cheap by a QR reduction: with the
+  picked columns A_S = Q R (maintained incrementally, one Gram-Schmidt step per pick),
+  |A_S w - b|^2 = |R w - Q^T b|^2 + const, so ``scipy.optimize.nnls(R, Q^T b)`` (k x k) has the
+  same minimiser as the tall problem (n x k, n = poses x rB). Hence no pose subsets are needed,
+  and the residual never increases from one pick to the next (the old weights stay feasible).
+- Candidates: each pick scores a fresh random subset of the unpicked elements by the cosine
+  between their column and the residual (only positive correlations can help with w >= 0).
+- Picks whose NNLS weight ends at 0 are dropped from the returned cubature.
+"""
+
+import numpy as np
+import scipy.linalg
+from scipy.optimize import nnls
+
+from . import reduced, rs
+
+DEG = np.pi / 180.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Training poses
+
+def training_poses(num_modes, eigenvalues, count, rng, max_rotation=120.0 * DEG, modal_rs=None,
+                   max_strain=1.0, single_fraction=1.0 / 3.0, min_rotation_fraction=0.05):
+    """Random modal coordinates Z (count, m) for training, with large rotations.
+
+    Each pose gets a target angle theta ~ U(min_rotation_fraction, 1) * max_rotation [rad]
+    (default up to 120 deg, beyond the 90 deg users typically reach) and is scaled so that
+    its largest per-tet rotation max_e |omega_e(z)| equals theta, unless its largest strain
+    max_e |eps_e(z)|_F would then pass ``max_strain`` (default 100 %): the pose stops there.
+    Without the cap, strain-dominated modes (axial stretch, whose rotations are tiny) would be
+    driven to 200 % strain and more, far outside what the body will do. This needs
+    ``modal_rs`` (E, 9, m); without it z is taken to be in radians (max |omega| per unit
+    z_i = 1), scaling uses the bound sum_i |z_i| and strain is not capped.
+
+    - The first ``single_fraction`` of the poses are single-mode, cycling through the modes
+      with random signs, so every mode is trained up to large rotations on its own.
+    - The others mix a random subset of 2..m modes with Gaussian coefficients in rotation
+      units, weighted by (lambda_1 / lambda_i)^(1/4): low modes dominate natural motion, yet
+      high ones still appear. eigenvalues (m,) [rad^2/s^2]; None weights all modes equally.
+    rng: ``np.random.Generator``.
+    """
+    m = int(num_modes)
+    count = int(count)
+    modal_rs = None if modal_rs is None else np.asarray(modal_rs)[:, :, :m]
+    per_unit = np.ones(m) if modal_rs is None else reduced.max_mode_rotations(modal_rs)
+    per_unit = np.maximum(per_unit, 1e-300)
+    if eigenvalues is None:
+        falloff = np.ones(m)
+    else:
+        ev = np.maximum(np.asarray(eigenvalues, dtype=np.float64)[:m], 1e-300)
+        falloff = (ev[0] / ev) ** 0.25
+    n_single = min(count, int(round(single_fraction * count)))
+    Z = np.zeros((count, m))
+    modes = np.arange(n_single) % m
+    Z[np.arange(n_single), modes] = rng.choice([-1.0, 1.0], n_single) / per_unit[modes]
+    for t in range(n_single, count):                                  # one draw per pose
+        active = rng.choice(m, size=rng.integers(2, m + 1) if m > 1 else 1, replace=False)
+        Z[t, active] = rng.normal(size=len(active)) * falloff[active] / per_unit[active]
+    theta = rng.uniform(min_rotation_fraction, 1.0, count) * max_rotation
+    if modal_rs is None:
+        return Z * (theta / np.maximum(np.abs(Z).sum(axis=1), 1e-300))[:, None]
+    rotation, strain = pose_extremes(modal_rs, Z)
+    factor = np.minimum(theta / rotation, max_strain / strain)
+    return Z * factor[:, None]
+
+
+def pose_extremes(modal_rs, Z, chunk=16):
+    """Largest rotation max_e |omega_e(z)| [rad] and strain max_e |eps_e(z)|_F per pose (F,).
+
+    modal_rs (E, 9, m), Z (F, m); ``chunk`` poses at a time bounds memory (E x 9 x chunk).
+    """
+    Z = np.atleast_2d(Z)
+    # |eps|_F^2 counts the off-diagonal entries (layout xx, xy, xz, yy, yz, zz) twice.
+    weights = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+    rotation, strain = np.empty(len(Z)), np.empty(len(Z))
+    for start in range(0, len(Z), chunk):
+        y = np.asarray(modal_rs) @ Z[start:start + chunk].T                # (E, 9, F)
+        rotation[start:start + chunk] = np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0)
+        strain[start:start + chunk] = np.sqrt(np.einsum("k,ekf->ef", weights,
+                                                        y[:, 3:] ** 2)).max(axis=0)
+    return np.maximum(rotation, 1e-300), np.maximum(strain, 1e-300)
+
+
+# ---------------------------------------------------------------------------------------------
+# Greedy NNLS
+
+def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=None,
+                num_columns=None, refit_every=4, progress=None):
+    """Greedy sparse non-negative fit target ~ A[:, S] w, w >= 0 (An et al. 2008).
+
+    columns: the matrix A (n, K), or a callable ``columns(indices) -> (n, len(indices))`` that
+      computes only the requested columns (then ``num_columns`` = K is required).
+    target: (n,). tol: stop when |residual| / |target| <= tol. max_picks: at most this many.
+    candidates: size of the random subset of unpicked columns scored per pick (None: all).
+    rng: ``np.random.Generator`` (default seeded 0). progress: optional callable(fraction,
+      message) called before each pick; an exception raised in it aborts and propagates.
+
+    Each pick takes the candidate with the largest cosine to the residual, then re-fits the
+    weights (module docstring): every ``refit_every`` picks by ``scipy.optimize.nnls`` on all
+    columns; in between by unconstrained least squares on the columns with positive weight
+    plus the new one, falling back to NNLS when that turns a weight negative. Either way the
+    weights stay >= 0 and the residual cannot grow (the previous weights remain feasible).
+
+    Returns (picked (k,) int64 indices with w > 0, weights (k,) > 0, history: list of relative
+    residuals, the first for w = 0, then one per accepted pick; non-increasing).
+    """
+    target = np.asarray(target, dtype=np.float64).reshape(-1)
+    if callable(columns):
+        if num_columns is None:
+            raise ValueError("num_columns is required when columns is a callable")
+        get = columns
+    else:
+        matrix = np.asarray(columns, dtype=np.float64)
+        num_columns = matrix.shape[1]
+
+        def get(indices):
+            return matrix[:, indices]
+    rng = np.random.default_rng(0) if rng is None else rng
+    fit = _IncrementalNNLS(target, min(int(max_picks), int(num_columns)))
+    available = np.ones(int(num_columns), dtype=bool)
+    history = [1.0]
+    misses = 0
+    while history[-1] > tol and fit.size < fit.capacity and available.any():
+        if progress is not None:
+            progress(fit.size / fit.capacity, f"cubature pick {fit.size + 1}/{fit.capacity}, "
+                                              f"residual {history[-1]:.2e}")
+        pool = np.flatnonzero(available)
+        if candidates is not None and len(pool) > candidates:
+            pool = rng.choice(pool, size=int(candidates), replace=False)
+        block = np.asarray(get(pool), dtype=np.float64)               # (n, |pool|)
+        norms = np.sqrt(np.einsum("ij,ij->j", block, block))
+        score = (fit.residual @ block) / np.maximum(norms, 1e-300)
+        best = int(np.argmax(score))
+        if score[best] <= 0.0:                   # no candidate here can lower the residual
+            misses += 1
+            if len(pool) == available.sum() or misses >= 5:
+                break
+            continue
+        misses = 0
+        available[pool[best]] = False
+        if fit.add(pool[best], block[:, best]):
+            history.append(fit.refit(full=fit.size % max(int(refit_every), 1) == 0))
+    keep = fit.weights > 0.0
+    return fit.indices[keep], fit.weights[keep], history
+
+
+class _IncrementalNNLS:
+    """NNLS over a growing column set, reduced to k x k through an incremental QR."""
+
+    def __init__(self, target, capacity):
+        n = len(target)
+        self.target, self.capacity = target, capacity
+        self.norm = max(float(np.linalg.norm(target)), 1e-300)
+        self.A = np.empty((n, capacity))
+        self.Q = np.empty((n, capacity))
+        self.R = np.zeros((capacity, capacity))
+        self.Qb = np.empty(capacity)
+        self.size = 0
+        self.indices = np.empty(0, dtype=np.int64)
+        self.weights = np.empty(0)
+        self.residual = target.copy()
+
+    def add(self, index, column):
+        """Append a column; False (and nothing appended) if it is numerically dependent."""
+        k = self.size
+        Q = self.Q[:, :k]
+        r = Q.T @ column
+        v = column - Q @ r
+        correction = Q.T @ v                                          # second Gram-Schmidt pass
+        v -= Q @ correction
+        r += correction
+        rho = np.linalg.norm(v)
+        if rho <= 1e-10 * np.linalg.norm(column):
+            return False
+        self.A[:, k], self.Q[:, k] = column, v / rho
+        self.R[:k, k], self.R[k, k] = r, rho
+        self.Qb[k] = self.Q[:, k] @ self.target
+        self.indices = np.append(self.indices, index)
+        self.size += 1
+        return True
+
+    def refit(self, full=True):
+        """Re-fit the weights (see ``greedy_nnls``); returns the relative residual."""
+        k = self.size
+        R, Qb = self.R[:k, :k], self.Qb[:k]
+        weights = None
+        if not full:
+            weights = np.zeros(k)
+            passive = np.append(np.flatnonzero(self.weights > 0.0), k - 1)
+            weights[passive] = _least_squares(R[:, passive], Qb)
+            if np.any(weights[passive] <= 0.0):
+                weights = None
+        if weights is None:
+            weights, _ = nnls(R, Qb, maxiter=max(50, 30 * k))
+        self.weights = weights
+        self.residual = self.target - self.A[:, :k] @ self.weights
+        return float(np.linalg.norm(self.residual)) / self.norm
+
+
+def _least_squares(A, b):
+    """argmin |A x - b| for A (k, p) of full column rank, by Householder QR."""
+    Q, R = scipy.linalg.qr(A, mode="economic")
+    return scipy.linalg.solve_triangular(R, Q.T @ b)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reduced RS cubature
+
+def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
+                              candidates=400, projection=None, progress=None):
+    """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``reduced.ReducedRS`` uses it.
+
+    ReducedRS integrates the linear part of the RS map exactly, so the cubature fits the
+    nonlinear remainder r_e(y) = b_e(y) - [omega_e]x - eps_e:
+    targets h_t = g_t - A z_t (g_t = exact all-tet q(z_t), A = ``linear_map``) and candidate
+    columns a_e = [P_e vec(r_e(y_e(z_t)))]_t, both divided per pose by |g_t| so that poses of
+    any size count alike relative to their full q.
+
+    X (N, 3), T (E, 4): the tet mesh; modal_rs (E, 9, m); B (3N, rB) the basis; recon: the
+    body's ``rs.PoissonReconstruction``; poses: Z (F, m) training modal coordinates (see
+    ``training_poses``); projection: an existing ``reduced.ReducedProjection`` for B.
+    Columns are computed only for the ``candidates`` random tets scored at each pick
+    (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
+    progress(fraction, message): optional, see ``greedy_nnls``.
+
+    Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
+    pick), ``relative_residual`` (final), ``poses``, ``projection`` (the ReducedProjection).
+    """
+    Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+    modal_rs = np.asarray(modal_rs, dtype=np.float64)
+    if projection is None:
+        projection = reduced.ReducedProjection(X, T, B, recon)
+    if progress is not None:
+        progress(0.0, "exact reduced fit of the training poses")
+    g = exact_reduced_q(projection, modal_rs, Z)                          # (F, rB)
+    scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+    remainder = g - Z @ projection.linear_map(modal_rs).T
+    target = (remainder / scale[:, None]).reshape(-1)                     # row = F-major (t, r)
+
+    def columns(tets):
+        return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
+
+    inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
+    tets, weights, history = greedy_nnls(columns, target, tol=tol, max_picks=max_tets,
+                                         candidates=candidates, rng=rng, num_columns=len(T),
+                                         progress=inner)
+    info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
+    return tets, weights, info
+
+
+def exact_reduced_q(projection, modal_rs, Z, chunk=4):
+    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory)."""
+    out = np.empty((len(Z), projection.basis_size))
+    n_tets = modal_rs.shape[0]
+    for start in range(0, len(Z), chunk):
+        Zc = Z[start:start + chunk]
+        y = np.einsum("ekm,fm->fek", modal_rs, Zc).reshape(-1, 9)
+        out[start:start + chunk] = projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets,
+                                                                               3, 3))
+    return out
+
+
+def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
+    """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
+    tets = np.asarray(tets, dtype=np.int64)
+    P = projection.tet_projections(tets)                                  # (k, rB, 9)
+    y = (modal_rs[tets].reshape(-1, Z.shape[1]) @ Z.T).reshape(len(tets), 9, len(Z))
+    y = y.transpose(0, 2, 1).reshape(-1, 9)
+    r = (reduced.fast_targets(y) - y @ reduced.LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
+    cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)
+    cols /= scale[None, :, None]
+    return cols.reshape(len(tets), -1).T

@@ -1,0 +1,372 @@
+"""Materials on the Cauchy strain and the reduced elastic potential V(s): SPEC.md section 6 [P15].
+
+In RS coordinates the potential depends on the strain only: tet e carries the symmetric Cauchy
+strain ``eps_e = S_e - I`` (the stretch of its polar decomposition), six numbers in the RS layout
+order ``[xx, xy, xz, yy, yz, zz]`` (tensor components: the off-diagonal ones appear twice in the
+3x3 matrix). A material maps an (E, 6) array of strains to energy densities psi (E,) [Pa = J/m^3],
+their gradients d psi / d eps (E, 6) [Pa] and Hessians (E, 6, 6) [Pa]:
+
+- ``Linear(mu, lam)``:  psi = mu |eps|^2 + lam/2 tr(eps)^2. With eps = sym grad u this is the
+  linear-elastic energy density of ``fem``, so its reduced potential is exactly 1/2 s^T Lambda s.
+- ``StVK(mu, lam)`` on the Cauchy strain: E_G = eps + eps^2 / 2 (the Green strain of S = I + eps),
+  psi = mu tr(E_G^2) + lam/2 tr(E_G)^2. Equal to Linear to first order at small strain; stiffer in
+  tension, softer in compression.
+- ``Fung(mu1, lam1, mu2, lam2, c)``: psi = psi_StVK(mu1, lam1) + c (exp(psi_StVK(mu2, lam2)) - 1);
+  mu1, lam1, c in Pa, mu2, lam2 dimensionless (they scale the exponent). Its small-strain
+  stiffness is that of Linear(mu1 + c mu2, lam1 + c lam2); it stiffens exponentially.
+
+Reduced potential (``ReducedPotential``): with modal coordinates s (m,) the strain is linear,
+``eps_e(s) = U_e s`` (U_e the strain rows (6, m) of the modal RS coordinates ``rs.linear_rs``), so
+
+    V(s) = sum_e w_e V_e psi(U_e s),   grad V = sum_e w_e V_e U_e^T dpsi,
+    hess V = sum_e w_e V_e U_e^T d2psi U_e,
+
+summed over all tets (w_e = 1, exact) or over an energy cubature (a few tets with weights
+w_e >= 0, ``train_energy_cubature``). Everything per evaluation is (C, 6, m) array code. For
+``Linear`` the Hessian is constant and precomputed, so an evaluation is one m x m product.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import cubature, rs
+
+# (E, 6) strain -> (E, 3, 3) matrix: entry (i, j) of the symmetric matrix is component FULL[3i+j].
+_FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
+# Row-major positions of the six components in a 3x3 matrix, and d eps_matrix / d eps_k counts:
+# tr(P dEps) = sum_k P[SIX[k]] * MULT[k] de_k for a symmetric P.
+_SIX = np.array([0, 1, 2, 4, 5, 8])
+_MULT = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+_TRACE = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])       # tr(eps) = _TRACE . e
+_BASIS = rs.STRAIN_BASIS                                 # (6, 3, 3) d eps / d e_k
+
+
+def strain_matrices(strain):
+    """(E, 3, 3) symmetric strain matrices of (E, 6) components [xx, xy, xz, yy, yz, zz]."""
+    strain = np.asarray(strain, dtype=np.float64)
+    return strain[..., _FULL].reshape(strain.shape[:-1] + (3, 3))
+
+
+def _components(P):
+    """d psi / d e (..., 6) of a symmetric matrix gradient P (..., 3, 3) = d psi / d eps."""
+    return P.reshape(P.shape[:-2] + (9,))[..., _SIX] * _MULT
+
+
+def _linear_tensor(mu, lam):
+    """(6, 6) C6 with psi = 1/2 e^T C6 e for mu |eps|^2 + lam/2 tr(eps)^2."""
+    return 2.0 * mu * np.diag(_MULT) + lam * np.outer(_TRACE, _TRACE)
+
+
+@dataclass(frozen=True)
+class Linear:
+    """psi = mu |eps|^2_F + lam/2 tr(eps)^2; mu, lam Lame parameters [Pa]."""
+
+    mu: float
+    lam: float
+
+    @property
+    def small_strain_lame(self):
+        """(mu, lam) [Pa] of the linear material this one equals at small strain."""
+        return self.mu, self.lam
+
+    def evaluate(self, strain, order=2):
+        """psi (E,) [Pa], d psi/d e (E, 6) and d2 psi/d e2 (E, 6, 6) (None below ``order``)."""
+        strain = np.asarray(strain, dtype=np.float64)
+        C = _linear_tensor(self.mu, self.lam)
+        grad = strain @ C
+        psi = 0.5 * np.einsum("ek,ek->e", grad, strain)
+        hess = np.broadcast_to(C, strain.shape[:-1] + (6, 6)) if order >= 2 else None
+        return psi, (grad if order >= 1 else None), hess
+
+
+class _GreenParts:
+    """Per-tet pieces shared by StVK evaluations of one strain array (E, 6).
+
+    StVK is linear in (mu, lam): psi = mu psi_mu + lam psi_lam, and likewise its derivatives, so
+    Fung's two StVK terms reuse everything here. For a symmetric stress-like S the matrix
+    gradient is P = S + (eps S + S eps) / 2 (from dE_G = deps + (deps eps + eps deps) / 2).
+    """
+
+    def __init__(self, strain, order):
+        self.order = order
+        self.eps = strain_matrices(strain)                                    # (E, 3, 3)
+        self.green = self.eps + 0.5 * self.eps @ self.eps
+        self.trace = np.trace(self.green, axis1=-2, axis2=-1)                 # (E,)
+        if order >= 2:
+            eps = self.eps[:, None]
+            self.d_green = _BASIS + 0.5 * (_BASIS @ eps + eps @ _BASIS)       # (E, 6, 3, 3)
+            self.d_trace = np.trace(self.d_green, axis1=-2, axis2=-1)         # (E, 6)
+
+    def _stress_gradient(self, S):
+        return S + 0.5 * (self.eps @ S + S @ self.eps)
+
+    def _stress_hessian(self, S, dS):
+        """(E, 6, 6) from S (E, 3, 3) and dS (E, 6, 3, 3) = dS/de_k."""
+        eps, S = self.eps[:, None], S[:, None]
+        dP = dS + 0.5 * (_BASIS @ S + eps @ dS + dS @ eps + S @ _BASIS)
+        H = _components(dP)
+        return 0.5 * (H + np.swapaxes(H, 1, 2))
+
+    def stvk(self, mu, lam):
+        """(psi, grad, hess) of mu tr(E_G^2) + lam/2 tr(E_G)^2 up to ``order``."""
+        eye = np.eye(3)
+        psi = mu * np.einsum("eij,eij->e", self.green, self.green) + 0.5 * lam * self.trace ** 2
+        if self.order < 1:
+            return psi, None, None
+        S = 2.0 * mu * self.green + lam * self.trace[:, None, None] * eye
+        grad = _components(self._stress_gradient(S))
+        if self.order < 2:
+            return psi, grad, None
+        dS = 2.0 * mu * self.d_green + lam * self.d_trace[:, :, None, None] * eye
+        return psi, grad, self._stress_hessian(S, dS)
+
+
+@dataclass(frozen=True)
+class StVK:
+    """St Venant-Kirchhoff on the Cauchy strain: E_G = eps + eps^2/2, Lame mu, lam [Pa]."""
+
+    mu: float
+    lam: float
+
+    @property
+    def small_strain_lame(self):
+        return self.mu, self.lam
+
+    def evaluate(self, strain, order=2):
+        """psi (E,) [Pa], d psi/d e (E, 6), d2 psi/d e2 (E, 6, 6) (None below ``order``)."""
+        return _GreenParts(strain, order).stvk(self.mu, self.lam)
+
+
+@dataclass(frozen=True)
+class Fung:
+    """psi_StVK(mu1, lam1) + c (exp(psi_StVK(mu2, lam2)) - 1).
+
+    mu1, lam1, c in Pa; mu2, lam2 dimensionless. Large strains may overflow the exponential
+    to inf: the integrator's line search rejects such trial points.
+    """
+
+    mu1: float
+    lam1: float
+    mu2: float
+    lam2: float
+    c: float
+
+    @property
+    def small_strain_lame(self):
+        return self.mu1 + self.c * self.mu2, self.lam1 + self.c * self.lam2
+
+    def evaluate(self, strain, order=2):
+        """psi (E,) [Pa], d psi/d e (E, 6), d2 psi/d e2 (E, 6, 6) (None below ``order``)."""
+        parts = _GreenParts(strain, order)
+        psi1, g1, H1 = parts.stvk(self.mu1, self.lam1)
+        psi2, g2, H2 = parts.stvk(self.mu2, self.lam2)
+        with np.errstate(over="ignore"):
+            growth = self.c * np.exp(psi2)                                    # (E,) [Pa]
+        psi = psi1 + growth - self.c
+        if order < 1:
+            return psi, None, None
+        grad = g1 + growth[:, None] * g2
+        if order < 2:
+            return psi, grad, None
+        hess = H1 + growth[:, None, None] * (H2 + g2[:, :, None] * g2[:, None, :])
+        return psi, grad, hess
+
+
+MATERIALS = ("LINEAR", "STVK", "FUNG")
+
+
+def make_material(kind, mu, lam, fung_stiffening=10.0):
+    """Material ``kind`` (one of MATERIALS) whose small-strain Lame parameters are (mu, lam) [Pa].
+
+    Fung splits the small-strain stiffness in half between its StVK term and its exponential
+    term, and scales the exponent by the uniaxial modulus: with k = ``fung_stiffening``
+    (dimensionless) and u = mu + lam/2, mu1 = mu/2, lam1 = lam/2, mu2 = k mu/u, lam2 = k lam/u,
+    c = u/(2k). A uniaxial Green strain E_G then gives the exponent k E_G^2 whatever Poisson's
+    ratio, so the exponential takes over around E_G = 1/sqrt(k) (k = 10: about 30 %); larger k
+    stiffens sooner.
+    """
+    kind = str(kind).upper()
+    mu, lam = float(mu), float(lam)
+    if kind == "LINEAR":
+        return Linear(mu, lam)
+    if kind == "STVK":
+        return StVK(mu, lam)
+    if kind == "FUNG":
+        k = float(fung_stiffening)
+        if not k > 0.0:
+            raise ValueError(f"Fung stiffening must be positive (got {k:g})")
+        uniaxial = mu + 0.5 * lam
+        return Fung(0.5 * mu, 0.5 * lam, k * mu / uniaxial, k * lam / uniaxial,
+                    0.5 * uniaxial / k)
+    raise ValueError(f"unknown material {kind!r}; expected one of {', '.join(MATERIALS)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Reduced potential
+
+class ReducedPotential:
+    """V(s) = sum_c weights_c psi(U_c s): the elastic energy [J] of modal coordinates s (m,).
+
+    material: ``Linear``, ``StVK`` or ``Fung``; strain_modes U (C, 6, m): strain per unit s at
+    each quadrature tet (rows 3:9 of ``rs.linear_rs``); weights (C,) [m^3]: tet volume times
+    cubature weight (1 for the exact all-tet sum). Use ``exact`` or ``cubature`` to build one.
+    ``tets`` (C,) records which tets these are (None: all, in order).
+
+    For ``Linear`` the (constant) Hessian sum_c w_c U_c^T C6 U_c is precomputed at construction,
+    so evaluation costs one m x m product; ``rest_hessian`` is the Hessian at s = 0 for every
+    material (the linearised stiffness, used for Rayleigh stiffness damping).
+    """
+
+    def __init__(self, material, strain_modes, weights, tets=None):
+        self.material = material
+        self.strain_modes = np.ascontiguousarray(strain_modes, dtype=np.float64)
+        self.weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+        self.tets = None if tets is None else np.asarray(tets, dtype=np.int64)
+        self.num_coords = self.strain_modes.shape[2]
+        self._flat = self.strain_modes.reshape(-1, self.num_coords)            # (6C, m)
+        self._quadratic = None
+        if isinstance(material, Linear):
+            self._quadratic = self._hessian_sum(material.evaluate(np.zeros((1, 6)))[2][0])
+        self.rest_hessian = (self._quadratic if self._quadratic is not None
+                             else self.evaluate(np.zeros(self.num_coords))[2])
+
+    @classmethod
+    def exact(cls, material, modal_rs, volumes):
+        """Sum over all E tets: modal_rs (E, 9, m) from ``rs.linear_rs``, volumes (E,) [m^3]."""
+        modal_rs = np.asarray(modal_rs, dtype=np.float64)
+        return cls(material, modal_rs[:, 3:, :], np.abs(volumes))
+
+    @classmethod
+    def cubature(cls, material, modal_rs, volumes, tets, weights):
+        """Sum over cubature tets (C,) with weights (C,) >= 0 (see ``train_energy_cubature``)."""
+        tets = np.asarray(tets, dtype=np.int64)
+        modal_rs = np.asarray(modal_rs, dtype=np.float64)
+        return cls(material, modal_rs[tets, 3:, :],
+                   np.abs(np.asarray(volumes)[tets]) * np.asarray(weights, dtype=np.float64),
+                   tets=tets)
+
+    @property
+    def is_quadratic(self):
+        """True for the linear material: V = 1/2 s^T K s with K = ``rest_hessian``."""
+        return self._quadratic is not None
+
+    def _hessian_sum(self, tet_hessians):
+        """sum_c w_c U_c^T H_c U_c (m, m) for H (C, 6, 6) or one shared (6, 6)."""
+        HU = np.matmul(tet_hessians, self.strain_modes) * self.weights[:, None, None]
+        K = self._flat.T @ HU.reshape(-1, self.num_coords)
+        return 0.5 * (K + K.T)
+
+    def strains(self, s):
+        """(C, 6) strains of the quadrature tets at s (m,)."""
+        return (self._flat @ np.asarray(s, dtype=np.float64)).reshape(-1, 6)
+
+    def evaluate(self, s, order=2):
+        """V [J], grad (m,) [J per unit s], Hessian (m, m) at s (m,); None below ``order``."""
+        s = np.asarray(s, dtype=np.float64)
+        if self._quadratic is not None:
+            grad = self._quadratic @ s
+            return 0.5 * float(grad @ s), (grad if order >= 1 else None), (
+                self._quadratic if order >= 2 else None)
+        psi, dpsi, d2psi = self.material.evaluate(self.strains(s), order)
+        energy = float(self.weights @ psi)
+        if order < 1:
+            return energy, None, None
+        grad = (dpsi * self.weights[:, None]).reshape(-1) @ self._flat
+        return energy, grad, (self._hessian_sum(d2psi) if order >= 2 else None)
+
+    def energy(self, s):
+        return self.evaluate(s, 0)[0]
+
+    def gradient(self, s):
+        return self.evaluate(s, 1)[1]
+
+    def hessian(self, s):
+        return self.evaluate(s, 2)[2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Energy cubature
+
+def prepare_potential(material, modal_rs, volumes, eigenvalues=None, num_poses=200,
+                      max_tets=200, tol=1e-4, max_rotation=np.pi / 2, seed=0, progress=None):
+    """The reduced potential a simulation should use: returns (potential, info).
+
+    Linear: the exact all-tet quadratic form (precomputed, no cubature needed). StVK / Fung:
+    an energy cubature (``train_energy_cubature``) on ``num_poses`` random poses from
+    ``cubature.training_poses`` with per-tet rotations up to ``max_rotation`` [rad] (90 deg
+    by default: poses far beyond what a simulation reaches spend tets on strains it never
+    sees). modal_rs (E, 9, m), volumes (E,) [m^3], eigenvalues (m,) weight the modes of mixed
+    poses; seed makes the result reproducible. info: ``tets``, ``weights``,
+    ``relative_residual`` (empty for Linear).
+    """
+    if isinstance(material, Linear):
+        return ReducedPotential.exact(material, modal_rs, volumes), {}
+    modal_rs = np.asarray(modal_rs, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    poses = cubature.training_poses(modal_rs.shape[2], eigenvalues, num_poses, rng,
+                                    max_rotation=max_rotation, modal_rs=modal_rs)
+    tets, weights, info = train_energy_cubature(material, modal_rs, volumes, poses, tol=tol,
+                                                max_tets=max_tets, rng=rng, progress=progress)
+    potential = ReducedPotential.cubature(material, modal_rs, volumes, tets, weights)
+    return potential, dict(tets=tets, weights=weights, relative_residual=info["relative_residual"])
+
+
+DENSE_COLUMNS = 4_000_000   # training matrices up to this many entries (32 MB) are built whole
+
+
+def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets=300,
+                          candidates=500, rng=None, progress=None):
+    """Cubature (tets, weights) for V(s) of ``material``, trained on forces and energies.
+
+    modal_rs (E, 9, m), volumes (E,) [m^3]; poses (F, m) training modal coordinates (e.g.
+    ``cubature.training_poses``: random, up to large rotations). Per pose t the target is the
+    exact reduced force grad V(s_t) (m,) and energy V(s_t), each divided by its own norm so
+    every pose and both kinds count alike (An et al. 2008 fit forces; the energy row keeps the
+    line search's objective consistent with them). Tet e's column holds its own contribution
+    V_e [U_e^T dpsi_e, psi_e] under the same scaling; ``cubature.greedy_nnls`` picks the tets,
+    scoring ``candidates`` random tets per pick (columns computed on demand unless the whole
+    matrix is small).
+
+    Returns tets (C,), weights (C,) > 0 and info dict (``history``, ``relative_residual``).
+    """
+    modal_rs = np.asarray(modal_rs, dtype=np.float64)
+    volumes = np.abs(np.asarray(volumes, dtype=np.float64))
+    Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+    exact = ReducedPotential.exact(material, modal_rs, volumes)
+    if progress is not None:
+        progress(0.0, "exact forces of the training poses")
+    rows = np.array([_pose_row(exact, z) for z in Z])                        # (F, m + 1)
+    scale = np.concatenate([np.repeat(np.maximum(np.linalg.norm(rows[:, :-1], axis=1), 1e-300)
+                                      [:, None], exact.num_coords, axis=1),
+                            np.maximum(np.abs(rows[:, -1:]), 1e-300)], axis=1)
+    target = (rows / scale).reshape(-1)
+    strain_modes = modal_rs[:, 3:, :]
+
+    def columns(tets):
+        return _tet_columns(material, strain_modes[tets], volumes[tets], Z, scale)
+
+    if target.size * len(volumes) <= DENSE_COLUMNS:       # small: every column once, up front
+        columns = columns(np.arange(len(volumes)))
+    inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
+    tets, weights, history = cubature.greedy_nnls(columns, target, tol=tol, max_picks=max_tets,
+                                                  candidates=candidates, rng=rng,
+                                                  num_columns=len(volumes), progress=inner)
+    return tets, weights, dict(history=history, relative_residual=history[-1])
+
+
+def _pose_row(potential, s):
+    """[grad V(s), V(s)] (m + 1,) of one pose."""
+    energy, grad, _ = potential.evaluate(s, 1)
+    return np.append(grad, energy)
+
+
+def _tet_columns(material, strain_modes, volumes, Z, scale):
+    """(F (m + 1), k) per-tet [V_e U_e^T dpsi, V_e psi] at poses Z (F, m), divided by scale."""
+    k, _, m = strain_modes.shape
+    strains = np.einsum("kim,fm->fki", strain_modes, Z)                      # (F, k, 6)
+    psi, dpsi, _ = material.evaluate(strains.reshape(-1, 6), 1)
+    forces = np.einsum("fki,kim->fkm", dpsi.reshape(len(Z), k, 6), strain_modes)
+    cols = np.concatenate([forces, psi.reshape(len(Z), k, 1)], axis=2) * volumes[None, :, None]
+    cols /= scale[:, None, :]
+    return cols.transpose(0, 2, 1).reshape(-1, k)

@@ -1,0 +1,830 @@
+"""Space-time editing of elastic motion with material optimisation: SPEC.md section 5 [L14].
+
+Unknowns: modal coordinates ``Z`` (F, r) for every frame of the edited range, h = 1/fps [s].
+The deformer (``reduced.ReducedRS``, ``reduced.LinearDeformer`` or anything with the same
+methods) maps its input ``zhat = S z`` (m,) to reduced coordinates ``q`` (rB,); a point set's
+displacement is ``rows @ q`` with ``rows`` precomputed rows of B (tet nodes) or Phi B (render
+vertices). Objective (all terms in SI units of the mass-normalised modal space)::
+
+    J(Z, Lam, D, S) = E_f(Z, Lam, D) + gamma E_c(S, Z) + E_k(S, Z) + mu E_s(S)
+    E_f = 1/2 sum_{i=1}^{F-2} |(z_{i+1} - 2 z_i + z_{i-1})/h^2 + D (z_{i+1} - z_{i-1})/(2h)
+                               + Lam z_i|^2                 (Lam z_i: see "scheme" below)
+    E_c = 1/2 sum_c w_c |rows_c q(S z_{i_c}) + rest_c - target_c|^2      (handles, metres^2)
+    E_k = 1/2 sum_k w_k |S z_{i_k} - zhat_k|^2                           (full-pose keyframes)
+    E_s = 1/2 sum_j (|s_j|^2 - 1)^2                                      (columns s_j of S)
+
+Choices written down here:
+
+- **Time discretisation** (``scheme``). "central" is SPEC 5's formula, with Lambda z_i. Its
+  free motion is unstable for h sqrt(lambda) > 2 (a mode faster than the frame rate can show,
+  e.g. above 7.6 Hz at 24 fps): E_f then has exponentially flat directions, the GN system is
+  numerically singular and a free tail after the last constraint would explode. "average"
+  evaluates the stiffness as Lambda (z_{i-1} + 2 z_i + z_{i+1}) / 4 (Newmark's average
+  acceleration): the same 3-point stencil, structure and O(h^2) accuracy, but stable for every
+  lambda. "auto" (default) takes "central" while h sqrt(lambda_max) <= ``CENTRAL_LIMIT`` (at
+  least ~6 frames per period of the fastest mode) and "average" otherwise.
+- **Start at rest** is a *hard* constraint: with ``fix_start`` (default) frames 0 and 1 are held
+  at ``start_state`` (zeros unless given) and eliminated from the unknowns. Being the first two
+  frames, what remains is still one contiguous banded system. An input animation (keyframes on
+  the first frames) sets ``fix_start=False`` instead.
+- **Gauss-Newton / Levenberg-Marquardt**: E_f and E_k are quadratic in Z, only E_c goes through
+  the deformer, so the Gauss-Newton matrix is the exact E_f Hessian (pentadiagonal in time per
+  mode) plus per-frame dense r x r blocks. In time-major order (unknown i r + k) that is a
+  symmetric band of half-width 2r, factored by LAPACK's banded Cholesky (``cholesky_banded``,
+  what ``solveh_banded`` calls, kept so the factor serves two right-hand sides). Marquardt
+  damping scales the diagonal (1 + lm); lm starts at 0, so a quadratic problem is solved in
+  one step. Each trial adds a second-order correction for the handles' curvature (see
+  ``_gauss_newton_step``). Steps are accepted only if the true objective does not increase.
+- **Penalty continuation**: with stiff handles (gamma far above the dynamics) the first GN step
+  from rest solves the *linearised* constraints exactly, which for a large edit is a huge
+  linear-modal pose; RS then lands in a poor basin (measured: a 5-handle 90 deg bend stalled
+  at J ~ 4e10 against 9e5 reachable). So ``solve`` first runs GN with gamma lowered to
+  ``WARM_TIGHTNESS`` (``handle_tightness``), raising it by ``WARM_FACTOR`` per stage, and starts
+  the real solve from there if that lowers J (history entry "warm").
+- **Material**: block coordinate descent, each block never increasing J: (1) Z by GN/LM;
+  (2) per mode (lambda_k, d_k) >= 0 by the exact two-unknown NNLS of E_f; a mode whose motion is
+  negligible keeps its values (E_f does not see it); (3) S by L-BFGS-B on
+  gamma E_c + E_k + mu E_s with the analytic gradient, reverted if J did not decrease.
+- **mu**: E_c and E_k see only S z, so S -> a S, z -> z / a lowers E_f by a^2 for free; E_s is
+  what stops that drift. ``mu=None`` (default) sets mu = ``MU_RELATIVE`` E_f / r once, after
+  the first Z block and before any material block runs, so the objective stays one function for
+  the whole history; with E_f = 0 there it falls back to 1.
+- Weights: see ``suggest_weights``; a constraint that outweighs the per-frame dynamics by a
+  factor ``tightness`` misses its target by roughly its unconstrained miss / tightness.
+"""
+
+from dataclasses import dataclass, field, replace
+from typing import Optional
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+LM_FIRST = 1e-9        # Marquardt factor after the first rejected step
+LM_MAX = 1e12          # beyond this the step is negligible: stop
+CENTRAL_LIMIT = 1.0    # "auto" uses central differences while h sqrt(lambda_max) <= this
+CORRECTIONS = 2        # second-order (chord) corrections per GN trial, see _gauss_newton_step
+WARM_TIGHTNESS = 10.0  # first handle weight of the penalty continuation, in tightness units
+WARM_FACTOR = 1e3      # ... raised by this factor per stage until gamma
+WARM_TOLERANCE = 1e-6  # relative decrease that ends a continuation stage
+MU_RELATIVE = 100.0    # auto mu = MU_RELATIVE * E_f / r (S columns then stay within ~1 % of unit)
+TIGHTNESS = 1e4        # default constraint/dynamics ratio of ``suggest_weights``
+DEGENERATE_MOTION = 1e-12  # relative size under which a mode is "not moving" for the (lam, d) fit
+
+
+class SolveCancelled(Exception):
+    """Raised by ``solve`` when ``should_cancel()`` returned True; nothing was changed."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Problem and result
+
+@dataclass
+class HandleConstraints:
+    """c handle constraints stacked: handle position ``rows @ q(S z_frame) + rest`` -> target.
+
+    frames (c,) int frame indices in [0, F); rows (c, 3, rB) rows of B (or Phi B) averaged over
+    the handle's vertices [m per unit q]; rest (c, 3) rest centroid [m]; targets (c, 3) [m] in
+    the body's rest frame; weights (c,) >= 0 dimensionless (multiplied by the problem's gamma).
+
+    Derived on construction: ``frame_list`` (u,) the distinct constrained frames and
+    ``frame_index`` (c,) into it; ``handle_rows`` (H, 3, rB) the distinct rows and
+    ``handle_index`` (c,) into them. Every handle is evaluated on every constrained frame at
+    once (u x H points, one batched deformer call); constraints pick their (frame, handle).
+    """
+
+    frames: np.ndarray
+    rows: np.ndarray
+    rest: np.ndarray
+    targets: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self):
+        self.frames = np.asarray(self.frames, dtype=np.int64).reshape(-1)
+        c = len(self.frames)
+        rows = np.asarray(self.rows, dtype=np.float64)
+        self.rows = rows.reshape(c, 3, rows.shape[-1] if rows.ndim == 3 else -1)
+        self.rest = np.asarray(self.rest, dtype=np.float64).reshape(c, 3)
+        self.targets = np.asarray(self.targets, dtype=np.float64).reshape(c, 3)
+        self.weights = np.broadcast_to(np.asarray(self.weights, dtype=np.float64), (c,)).copy()
+        if np.any(self.weights < 0.0):
+            raise ValueError("handle weights must be >= 0")
+        self.frame_list, self.frame_index = np.unique(self.frames, return_inverse=True)
+        unique, self.handle_index = np.unique(self.rows.reshape(c, 3 * self.rows.shape[2]),
+                                              axis=0, return_inverse=True)
+        self.handle_index = self.handle_index.reshape(-1)
+        self.handle_rows = unique.reshape(len(unique), 3, self.rows.shape[2])
+        self._evaluator = (None, None)
+
+    def __len__(self):
+        return len(self.frames)
+
+    def evaluator(self, deformer):
+        """Row evaluator of all ``handle_rows`` stacked (3H, rB) for ``deformer`` (cached).
+
+        Uses the deformer's ``row_evaluator`` (ReducedRS folds the rows into its cubature, so
+        nothing of size rB is formed), else ``rows @ q`` through ``q_batch``.
+        """
+        if self._evaluator[0] is not deformer:
+            stacked = self.handle_rows.reshape(-1, self.handle_rows.shape[2])
+            make = getattr(deformer, "row_evaluator", None)
+            self._evaluator = (deformer, make(stacked) if make is not None
+                               else _RowsThroughQ(deformer, stacked))
+        return self._evaluator[1]
+
+
+class _RowsThroughQ:
+    """Row evaluator for deformers without one: u = rows q(z), du/dz = rows dq/dz."""
+
+    def __init__(self, deformer, rows):
+        self.deformer, self.rows = deformer, rows
+
+    def displacement_batch(self, Z):
+        """(F, k, 3) of Z (F, m)."""
+        return (np.asarray(self.deformer.q_batch(Z)) @ self.rows.T).reshape(len(Z), -1, 3)
+
+    def jacobian_batch(self, Z):
+        """(F, 3k, m) of Z (F, m)."""
+        return self.rows @ np.asarray(self.deformer.q_jacobian_batch(Z))
+
+
+@dataclass
+class Keyframes:
+    """k full-pose constraints 1/2 w |S z_frame - pose|^2.
+
+    frames (k,) int; poses (k, m) deformer inputs zhat (e.g. from ``pose_to_modal``);
+    weights (k,) >= 0 (absolute: units of E_f per (modal coordinate)^2).
+    """
+
+    frames: np.ndarray
+    poses: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self):
+        self.frames = np.asarray(self.frames, dtype=np.int64).reshape(-1)
+        k = len(self.frames)
+        poses = np.asarray(self.poses, dtype=np.float64)
+        self.poses = poses.reshape(k, poses.shape[-1] if poses.ndim == 2 else -1)
+        self.weights = np.broadcast_to(np.asarray(self.weights, dtype=np.float64), (k,)).copy()
+        if np.any(self.weights < 0.0):
+            raise ValueError("keyframe weights must be >= 0")
+
+    def __len__(self):
+        return len(self.frames)
+
+
+@dataclass
+class SpaceTimeProblem:
+    """One space-time edit.
+
+    frames F >= 3 (frame 0 is the first of the range); h time step [s];
+    eigenvalues (r,) initial Lambda [rad^2/s^2]; damping (r,) initial D [1/s];
+    deformer: ``num_coords`` m >= r and ``q_batch`` / ``q_jacobian_batch`` (see module doc);
+    handles / keyframes: optional constraints; gamma: handle weight [E_f units per m^2];
+    mu: E_s weight (None: automatic, module doc); sampling (m, r) initial S (default [I; 0]);
+    fix_start: hold frames 0 and 1 at start_state (2, r) (default zeros: start at rest).
+    scheme: time discretisation of E_f, "central", "average" or "auto" (module doc), resolved
+    on construction.
+    """
+
+    frames: int
+    h: float
+    eigenvalues: np.ndarray
+    damping: np.ndarray
+    deformer: object
+    handles: Optional[HandleConstraints] = None
+    keyframes: Optional[Keyframes] = None
+    gamma: float = 1.0
+    mu: Optional[float] = None
+    sampling: Optional[np.ndarray] = None
+    fix_start: bool = True
+    start_state: Optional[np.ndarray] = None
+    scheme: str = "auto"
+
+    def __post_init__(self):
+        self.frames = int(self.frames)
+        self.h = float(self.h)
+        self.eigenvalues = np.asarray(self.eigenvalues, dtype=np.float64).reshape(-1)
+        r = len(self.eigenvalues)
+        self.damping = np.broadcast_to(np.asarray(self.damping, dtype=np.float64), (r,)).copy()
+        m = int(self.deformer.num_coords)
+        self.sampling = (np.eye(m, r) if self.sampling is None
+                         else np.asarray(self.sampling, dtype=np.float64).reshape(m, r))
+        self.start_state = (np.zeros((2, r)) if self.start_state is None
+                            else np.asarray(self.start_state, dtype=np.float64).reshape(2, r))
+        self.scheme = resolve_scheme(self.scheme, self.h, self.eigenvalues)
+        self._check(m, r)
+
+    def _check(self, m, r):
+        if self.frames < 3 or self.h <= 0.0:
+            raise ValueError(f"need at least 3 frames and h > 0 (got {self.frames}, {self.h})")
+        if m < r:
+            raise ValueError(f"the deformer takes {m} coordinates, fewer than the {r} modes")
+        if self.fix_start and self.frames < 4:
+            raise ValueError("with a fixed start at least 4 frames are needed")
+        for name, c in (("handle", self.handles), ("keyframe", self.keyframes)):
+            if c is not None and len(c) and (c.frames.min() < 0 or c.frames.max() >= self.frames):
+                raise ValueError(f"{name} frames must lie in [0, {self.frames})")
+        if self.keyframes is not None and self.keyframes.poses.shape[1] != m:
+            raise ValueError(f"keyframe poses have {self.keyframes.poses.shape[1]} coordinates, "
+                             f"the deformer takes {m}")
+        if _has(self.handles) and self.handles.rows.shape[2] != self.deformer.basis_size:
+            raise ValueError(f"handle rows have {self.handles.rows.shape[2]} columns, the "
+                             f"deformer's basis {self.deformer.basis_size}")
+
+    @property
+    def num_modes(self):
+        return len(self.eigenvalues)
+
+    @property
+    def first_free(self):
+        """Index of the first unknown frame (2 with a fixed start, else 0)."""
+        return 2 if self.fix_start else 0
+
+
+@dataclass
+class SpaceTimeResult:
+    """Result of ``solve``.
+
+    Z (F, r) modal coordinates; eigenvalues, damping (r,); sampling S (m, r); deformer inputs
+    are ``Z @ S.T`` (``inputs``). objective: final J; control_energy: final E_f alone;
+    handle_residuals (c,) [m] distance of each handle from its target; keyframe_residuals (k,)
+    |S z - zhat|; history: list of (iteration, block, J) with block in "start", "warm", "z",
+    "material", "sampling" (non-increasing); iterations: GN iterations done (continuation
+    included); converged: bool; mu: the E_s weight used; scheme: E_f's time discretisation
+    (pass it to ``simulate_modal`` to continue the motion).
+    """
+
+    Z: np.ndarray
+    eigenvalues: np.ndarray
+    damping: np.ndarray
+    sampling: np.ndarray
+    objective: float
+    control_energy: float
+    handle_residuals: np.ndarray
+    keyframe_residuals: np.ndarray
+    history: list = field(default_factory=list)
+    iterations: int = 0
+    converged: bool = False
+    mu: float = 0.0
+    scheme: str = "central"
+
+    @property
+    def inputs(self):
+        """(F, m) deformer inputs zhat_i = S z_i of every frame."""
+        return self.Z @ self.sampling.T
+
+    @property
+    def objective_history(self):
+        """(n,) J after every recorded step."""
+        return np.array([entry[2] for entry in self.history])
+
+
+# ---------------------------------------------------------------------------------------------
+# Control-force energy E_f (quadratic, separable per mode)
+
+def resolve_scheme(scheme, h, eigenvalues):
+    """"central" or "average" for ``scheme`` in ("auto", "central", "average") (module doc)."""
+    if scheme == "auto":
+        omega_h = h * np.sqrt(np.max(np.maximum(np.asarray(eigenvalues, dtype=np.float64), 0.0)))
+        return "central" if omega_h <= CENTRAL_LIMIT else "average"
+    if scheme not in ("central", "average"):
+        raise ValueError(f"unknown time discretisation {scheme!r}: use auto, central or average")
+    return scheme
+
+
+def stiffness_weights(scheme):
+    """(3,) weights of z_{i-1}, z_i, z_{i+1} in the stiffness term Lambda z of E_f's residual."""
+    return np.array([0.0, 1.0, 0.0]) if scheme == "central" else np.array([0.25, 0.5, 0.25])
+
+
+def stencil(eigenvalues, damping, h, scheme="central"):
+    """(3, r) coefficients (a, b, c) of the E_f residual a z_{i-1} + b z_i + c z_{i+1} per mode.
+
+    central: a = 1/h^2 - d/(2h), b = lambda - 2/h^2, c = 1/h^2 + d/(2h)   [1/s^2];
+    average: lambda enters as (a, b, c) += lambda (1/4, 1/2, 1/4).
+    """
+    eigenvalues, damping = np.broadcast_arrays(np.asarray(eigenvalues, dtype=np.float64),
+                                               np.asarray(damping, dtype=np.float64))
+    base = np.stack([1.0 / h ** 2 - damping / (2.0 * h), np.full_like(damping, -2.0 / h ** 2),
+                     1.0 / h ** 2 + damping / (2.0 * h)])
+    return base + stiffness_weights(scheme)[:, None] * eigenvalues
+
+
+def dynamics_residual(Z, eigenvalues, damping, h, scheme="central"):
+    """(F-2, r) residual of the modal equation of motion on frames 1..F-2 [modal units / s^2]."""
+    a, b, c = stencil(eigenvalues, damping, h, scheme)
+    return a * Z[:-2] + b * Z[1:-1] + c * Z[2:]
+
+
+def control_energy(Z, eigenvalues, damping, h, scheme="central"):
+    """E_f(Z) = 1/2 |dynamics_residual|^2 (float)."""
+    return 0.5 * float(np.sum(dynamics_residual(Z, eigenvalues, damping, h, scheme) ** 2))
+
+
+def control_energy_gradient(Z, eigenvalues, damping, h, scheme="central"):
+    """dE_f/dZ (F, r): the stencil transposed applied to the residual."""
+    a, b, c = stencil(eigenvalues, damping, h, scheme)
+    R = dynamics_residual(Z, eigenvalues, damping, h, scheme)
+    G = np.zeros_like(Z, dtype=np.float64)
+    G[:-2] += a * R
+    G[1:-1] += b * R
+    G[2:] += c * R
+    return G
+
+
+def control_energy_bands(frames, eigenvalues, damping, h, scheme="central"):
+    """E_f Hessian per mode as three diagonals: d0 (F, r), d1 (F-1, r), d2 (F-2, r).
+
+    H_k[j, j] = d0[j, k], H_k[j+1, j] = d1[j, k], H_k[j+2, j] = d2[j, k]. Residual row i
+    (1 <= i <= F-2) touches frames i-1, i, i+1 with (a, b, c), hence the masks at both ends.
+    """
+    a, b, c = stencil(eigenvalues, damping, h, scheme)
+    row = np.zeros(frames + 2, dtype=bool)          # row[j + 1]: frame j carries a residual
+    row[2:frames] = True
+    at, before, after = row[1:-1, None], row[2:, None], row[:-2, None]  # rows j, j+1, j-1
+    d0 = a * a * before + b * b * at + c * c * after
+    d1 = (a * b * before + b * c * at)[:-1]
+    d2 = (a * c * before)[:-2]
+    return d0, d1, d2
+
+
+def simulate_modal(eigenvalues, damping, z0, z1, frames, h, scheme="central"):
+    """Free run of z'' + D z' + Lambda z = 0 with E_f's differences: (frames, r).
+
+    z0, z1 (r,) are frames 0 and 1; each later frame solves the stencil row for z_{i+1}, so
+    E_f of the output (same ``scheme``) is zero up to round-off. Vectorised over modes; the
+    recurrence over frames is inherent. "central" is stable only for h sqrt(lambda) < 2;
+    "average" (Newmark's average acceleration) for every lambda, d >= 0.
+    """
+    a, b, c = stencil(eigenvalues, damping, h, scheme)
+    Z = np.zeros((int(frames), len(a)))
+    Z[0], Z[1] = z0, z1
+    for i in range(1, int(frames) - 1):
+        Z[i + 1] = -(a * Z[i - 1] + b * Z[i]) / c
+    return Z
+
+
+# ---------------------------------------------------------------------------------------------
+# Constraint terms
+
+def sampling_energy(S):
+    """E_s(S) = 1/2 sum_j (|s_j|^2 - 1)^2 and its gradient (m, r)."""
+    excess = np.sum(S * S, axis=0) - 1.0
+    return 0.5 * float(excess @ excess), 2.0 * S * excess
+
+
+def handle_misses(problem, Z, S):
+    """(c, 3) handle position minus target [m]; one batched deformer call for all of them."""
+    handles = problem.handles
+    u = handles.evaluator(problem.deformer).displacement_batch(Z[handles.frame_list] @ S.T)
+    return u[handles.frame_index, handles.handle_index] + handles.rest - handles.targets
+
+
+def _handle_terms(problem, Z, S, jacobian):
+    """Weighted residuals and, optionally, Jacobians of all handle constraints.
+
+    Returns res (c, 3) = sqrt(gamma w) (position - target) [scaled m] and Jx (c, 3, m), the
+    derivative of res w.r.t. the deformer input zhat of the constraint's frame (None unless
+    ``jacobian``).
+    """
+    handles = problem.handles
+    scale = np.sqrt(problem.gamma * handles.weights)[:, None]
+    res = scale * handle_misses(problem, Z, S)
+    if not jacobian:
+        return res, None
+    J = handles.evaluator(problem.deformer).jacobian_batch(Z[handles.frame_list] @ S.T)
+    J = J.reshape(len(J), -1, 3, J.shape[-1])                              # (u, H, 3, m)
+    return res, scale[:, :, None] * J[handles.frame_index, handles.handle_index]
+
+
+def _keyframe_terms(problem, Z, S):
+    """(k, m) weighted keyframe residuals sqrt(w) (S z_i - zhat_i)."""
+    keys = problem.keyframes
+    return np.sqrt(keys.weights)[:, None] * (Z[keys.frames] @ S.T - keys.poses)
+
+
+def _has(constraints):
+    return constraints is not None and len(constraints) > 0
+
+
+def objective_terms(problem, Z, eigenvalues, damping, S, mu):
+    """(E_f, gamma E_c, E_k, mu E_s) as floats."""
+    e_f = control_energy(Z, eigenvalues, damping, problem.h, problem.scheme)
+    e_c = (0.5 * float(np.sum(_handle_terms(problem, Z, S, False)[0] ** 2))
+           if _has(problem.handles) else 0.0)
+    e_k = (0.5 * float(np.sum(_keyframe_terms(problem, Z, S) ** 2))
+           if _has(problem.keyframes) else 0.0)
+    return e_f, e_c, e_k, mu * sampling_energy(S)[0]
+
+
+def objective(problem, Z, eigenvalues, damping, S, mu=0.0):
+    """J = E_f + gamma E_c + E_k + mu E_s (float)."""
+    return float(sum(objective_terms(problem, Z, eigenvalues, damping, S, mu)))
+
+
+def handle_residuals(problem, Z, S):
+    """(c,) distance [m] of each handle from its target (unweighted)."""
+    if not _has(problem.handles):
+        return np.zeros(0)
+    return np.linalg.norm(handle_misses(problem, Z, S), axis=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Gauss-Newton system
+
+def _block_band_indices(r):
+    """(k, d) of every lower-band entry of a dense r x r block: entry (k + d, k), k + d < r."""
+    return np.nonzero(np.tri(r, dtype=bool)[::-1])
+
+
+def normal_equations(problem, Z, eigenvalues, damping, S):
+    """Gauss-Newton system of J in Z on the free frames, lower banded form.
+
+    Returns ab (2r + 1, n) for ``solveh_banded(ab, -g, lower=True)`` and g (n,), with
+    n = (F - first_free) r unknowns in time-major order (index (i - first_free) r + k).
+    The E_f part is exact; handles add Jc^T Jc, keyframes w S^T S, both per frame.
+    """
+    return _linearise(problem, Z, eigenvalues, damping, S)[:2]
+
+
+def _linearise(problem, Z, eigenvalues, damping, S):
+    """(ab, g, handle residuals (c, 3) or None, their Jacobians in z (c, 3, r) or None)."""
+    F, r, s = problem.frames, problem.num_modes, problem.first_free
+    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme)
+    blocks = np.zeros((F, r, r))
+    res = Jz = None
+    if _has(problem.handles):
+        res, Jx = _handle_terms(problem, Z, S, True)
+        Jz = Jx @ S                                                          # (c, 3, r)
+        np.add.at(grad, problem.handles.frames, np.einsum("cdr,cd->cr", Jz, res))
+        np.add.at(blocks, problem.handles.frames, np.einsum("cdr,cds->crs", Jz, Jz))
+    if _has(problem.keyframes):
+        keys = problem.keyframes
+        key_res = _keyframe_terms(problem, Z, S)                             # (k, m)
+        np.add.at(grad, keys.frames, np.sqrt(keys.weights)[:, None] * (key_res @ S))
+        np.add.at(blocks, keys.frames, keys.weights[:, None, None] * (S.T @ S))
+    ab = _assemble_band(problem, eigenvalues, damping, blocks[s:])
+    return ab, grad[s:].reshape(-1), res, Jz
+
+
+def _assemble_band(problem, eigenvalues, damping, blocks):
+    """ab (2r + 1, n): E_f diagonals at offsets 0, r, 2r plus the per-frame blocks (nf, r, r)."""
+    r, s = problem.num_modes, problem.first_free
+    nf = problem.frames - s
+    d0, d1, d2 = control_energy_bands(problem.frames, eigenvalues, damping, problem.h,
+                                      problem.scheme)
+    ab = np.zeros((2 * r + 1, nf * r))
+    ab[0] = d0[s:].reshape(-1)
+    ab[r, :(nf - 1) * r] = d1[s:].reshape(-1)
+    ab[2 * r, :(nf - 2) * r] = d2[s:].reshape(-1)
+    # ab[d, i r + k] = block_i[k + d, k]; indices broadcast over frames i (nf, 1) x pairs (P,).
+    k, d = _block_band_indices(r)
+    i = np.arange(nf)[:, None]
+    ab[d, i * r + k] += blocks[i, k + d, k]
+    return ab
+
+
+# ---------------------------------------------------------------------------------------------
+# Blocks of the descent
+
+class _State:
+    """Mutable solve state: Z, Lambda, D, S, mu, Marquardt factor, history."""
+
+    def __init__(self, problem, Z, mu):
+        self.problem = problem
+        self.Z, self.S = Z, problem.sampling.copy()
+        self.eigenvalues, self.damping = problem.eigenvalues.copy(), problem.damping.copy()
+        self.mu, self.lm, self.iterations = mu, 0.0, 0
+        self.value = self.evaluate()
+        self.history = [(0, "start", self.value)]
+
+    def evaluate(self, Z=None, S=None):
+        return objective(self.problem, self.Z if Z is None else Z, self.eigenvalues,
+                         self.damping, self.S if S is None else S, self.mu)
+
+    def record(self, iteration, block, callback):
+        self.history.append((iteration, block, self.value))
+        if callback is not None:
+            callback(iteration, self.value)
+
+
+def _gauss_newton_step(state, tolerance):
+    """One accepted (or failed) LM step on Z. Returns True when converged or stuck.
+
+    Each trial factors the damped GN matrix once (``cholesky_banded``, the factorisation
+    ``solveh_banded`` does) and reuses it for up to ``CORRECTIONS`` second-order corrections:
+    the handle residual's curvature along the step, e = r(z + dz) - r(z) - J dz, is fed back as
+    the chord step -H^-1 J^T e. Penalised handles make a narrow curved valley (gamma is large);
+    straight GN steps leave it quadratically and get rejected or shortened, the corrections
+    follow it. The best of the trial points is kept if it does not increase J.
+    """
+    problem, s = state.problem, state.problem.first_free
+    ab, g, res, Jz = _linearise(problem, state.Z, state.eigenvalues, state.damping, state.S)
+    while state.lm <= LM_MAX:
+        damped = ab.copy()
+        damped[0] *= 1.0 + state.lm
+        try:
+            factor = (scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False), True)
+        except np.linalg.LinAlgError:       # round-off made the GN matrix indefinite: damp more
+            state.lm = max(10.0 * state.lm, LM_FIRST)
+            continue
+        step = scipy.linalg.cho_solve_banded(factor, -g, check_finite=False)
+        Z, value = _corrected_trials(state, factor, step, res, Jz)
+        if value <= state.value:
+            decrease = state.value - value
+            small_step = (np.linalg.norm(Z - state.Z)
+                          <= tolerance * (np.linalg.norm(Z[s:]) + 1e-300))
+            state.Z, state.value, state.lm = Z, value, state.lm / 10.0
+            state.lm = 0.0 if state.lm < LM_FIRST else state.lm
+            return decrease <= tolerance * max(value, 1e-300) or small_step
+        state.lm = max(10.0 * state.lm, LM_FIRST)
+    return True
+
+
+def _corrected_trials(state, factor, step, res, Jz):
+    """Best (Z, J) among Z + step and its chord corrections (see ``_gauss_newton_step``)."""
+    problem, s, r = state.problem, state.problem.first_free, state.problem.num_modes
+    Z = state.Z.copy()
+    Z[s:] += step.reshape(-1, r)
+    best = (Z, state.evaluate(Z=Z))
+    if res is None:                          # everything else is quadratic: GN is exact
+        return best
+    frames = problem.handles.frames
+    for _ in range(CORRECTIONS):
+        linear = res + np.einsum("cdr,cr->cd", Jz, (Z - state.Z)[frames])   # r(z) + J dz
+        error = _handle_terms(problem, Z, state.S, False)[0] - linear
+        rhs = np.zeros_like(Z)
+        np.add.at(rhs, frames, np.einsum("cdr,cd->cr", Jz, error))
+        Z = Z.copy()
+        Z[s:] -= scipy.linalg.cho_solve_banded(factor, rhs[s:].reshape(-1),
+                                               check_finite=False).reshape(-1, r)
+        value = state.evaluate(Z=Z)
+        if value >= best[1]:
+            break
+        best = (Z, value)
+    return best
+
+
+def _optimise_z(state, iterations, tolerance, outer, callback, should_cancel):
+    """Up to ``iterations`` GN/LM steps on Z; records each. Returns True if converged."""
+    for _ in range(iterations):
+        _check_cancel(should_cancel)
+        done = _gauss_newton_step(state, tolerance)
+        state.iterations += 1
+        state.record(outer if outer is not None else state.iterations, "z", callback)
+        if done:
+            return True
+    return False
+
+
+def fit_material(Z, h, eigenvalues, damping, scheme="central"):
+    """Per mode the exact minimiser of E_f over (lambda_k, d_k) >= 0 for fixed Z (F, r).
+
+    E_f of mode k is 1/2 |[s, v] (lambda, d) + acc|^2 over frames 1..F-2, with s = z_i
+    ("central") or (z_{i-1} + 2 z_i + z_{i+1}) / 4 ("average"), v = (z_{i+1} - z_{i-1}) / 2h,
+    acc = (z_{i+1} - 2 z_i + z_{i-1}) / h^2: a two-column NNLS (columns scaled to unit norm for
+    conditioning). A column that is negligible (relative ``DEGENERATE_MOTION`` to the largest of
+    its kind) leaves its parameter at the value in ``eigenvalues`` / ``damping`` (r,): E_f does
+    not see it. Returns (lambda (r,), d (r,)).
+    """
+    w = stiffness_weights(scheme)
+    stiffness = w[0] * Z[:-2] + w[1] * Z[1:-1] + w[2] * Z[2:]
+    columns = np.stack([stiffness, (Z[2:] - Z[:-2]) / (2.0 * h)], axis=1)   # (F-2, 2, r)
+    acc = (Z[2:] - 2.0 * Z[1:-1] + Z[:-2]) / h ** 2                        # (F-2, r)
+    norms = np.linalg.norm(columns, axis=0)                                # (2, r)
+    used = norms > DEGENERATE_MOTION * np.maximum(norms.max(axis=1, keepdims=True), 1e-300)
+    params = np.stack([eigenvalues, damping]).astype(np.float64)           # (2, r)
+    for k in np.flatnonzero(used.any(axis=0)):       # r <= ~40 tiny NNLS problems
+        use = used[:, k]
+        rhs = -acc[:, k] - columns[:, ~use, k] @ params[~use, k]
+        x, _ = scipy.optimize.nnls(columns[:, use, k] / norms[use, k], rhs)
+        params[use, k] = x / norms[use, k]
+    return params[0], params[1]
+
+
+def _optimise_material(state, outer, callback):
+    """Block (2): exact (lambda, d) >= 0; kept only if J does not increase."""
+    problem = state.problem
+    lam, dmp = fit_material(state.Z, problem.h, state.eigenvalues, state.damping,
+                            problem.scheme)
+    old = state.eigenvalues, state.damping
+    state.eigenvalues, state.damping = lam, dmp
+    value = state.evaluate()
+    if value <= state.value:
+        state.value = value
+    else:                                     # round-off only: the fit is exact
+        state.eigenvalues, state.damping = old
+    state.record(outer, "material", callback)
+
+
+def sampling_objective(problem, Z, S, mu):
+    """gamma E_c + E_k + mu E_s as a function of S (m, r), and its gradient (m, r).
+
+    d/dS of 1/2 |res(S z_i)|^2 is (Jx^T res) z_i^T summed over constraints; E_s as in
+    ``sampling_energy``. One batched deformer call (values and Jacobians) per evaluation.
+    """
+    value, grad = sampling_energy(S)
+    value, grad = mu * value, mu * grad
+    if _has(problem.handles):
+        res, Jx = _handle_terms(problem, Z, S, True)
+        value += 0.5 * float(np.sum(res ** 2))
+        grad = grad + np.einsum("cdm,cd,cr->mr", Jx, res, Z[problem.handles.frames])
+    if _has(problem.keyframes):
+        res = _keyframe_terms(problem, Z, S)
+        value += 0.5 * float(np.sum(res ** 2))
+        weights = np.sqrt(problem.keyframes.weights)[:, None]
+        grad = grad + res.T @ (weights * Z[problem.keyframes.frames])
+    return value, grad
+
+
+def _optimise_sampling(state, iterations, outer, callback):
+    """Block (3): S by L-BFGS-B with the analytic gradient, reverted unless J decreased."""
+    problem, shape = state.problem, state.S.shape
+
+    def fun(flat):
+        value, grad = sampling_objective(problem, state.Z, flat.reshape(shape), state.mu)
+        return value, grad.reshape(-1)
+
+    found = scipy.optimize.minimize(fun, state.S.reshape(-1), jac=True, method="L-BFGS-B",
+                                    options=dict(maxiter=iterations))
+    S = found.x.reshape(shape)
+    value = state.evaluate(S=S)
+    if value < state.value:
+        state.S, state.value = S, value
+    state.record(outer, "sampling", callback)
+
+
+def _check_cancel(should_cancel):
+    if should_cancel is not None and should_cancel():
+        raise SolveCancelled("space-time solve cancelled")
+
+
+# ---------------------------------------------------------------------------------------------
+# Driver
+
+def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
+          sampling_iterations=30, tolerance=1e-9, initial=None, continuation=True,
+          callback=None, should_cancel=None):
+    """Minimise J over Z (and, with ``optimise_material``, over Lambda, D and S).
+
+    iterations: GN steps (default 50) without material optimisation; outer block-descent
+    rounds (default 10) with it, each round = up to ``gn_iterations`` GN steps, the (lambda, d)
+    fit and up to ``sampling_iterations`` L-BFGS-B iterations on S. tolerance: relative
+    decrease of J (and relative step size) under which a GN run, or a whole round, stops.
+    initial: (F, r) starting Z (default zeros; start frames are overwritten by start_state).
+    continuation: run the penalty continuation for stiff handles first (module doc).
+    callback(iteration, J) after every recorded step; should_cancel() -> bool polled between
+    steps, raising ``SolveCancelled``. Returns ``SpaceTimeResult``.
+    """
+    Z = np.zeros((problem.frames, problem.num_modes)) if initial is None else \
+        np.array(initial, dtype=np.float64).reshape(problem.frames, problem.num_modes)
+    if problem.fix_start:
+        Z[:2] = problem.start_state
+    state = _State(problem, Z, 0.0 if problem.mu is None else float(problem.mu))
+    gn_cap = 50 if iterations is None or optimise_material else int(iterations)
+    if continuation:
+        _warm_start(state, gn_cap, tolerance, callback, should_cancel)
+    if not optimise_material:
+        return _result(state, _optimise_z(state, gn_cap, tolerance, None, callback,
+                                          should_cancel))
+
+    converged = _optimise_z(state, gn_iterations, tolerance, 0, callback, should_cancel)
+    if problem.mu is None:
+        _choose_mu(state)
+    for outer in range(1, 1 + (10 if iterations is None else int(iterations))):
+        before = state.value
+        _optimise_z(state, gn_iterations, tolerance, outer, callback, should_cancel)
+        _check_cancel(should_cancel)
+        _optimise_material(state, outer, callback)
+        _check_cancel(should_cancel)
+        _optimise_sampling(state, sampling_iterations, outer, callback)
+        converged = before - state.value <= tolerance * max(state.value, 1e-300)
+        if converged:
+            break
+    return _result(state, converged)
+
+
+def _warm_start(state, iterations, tolerance, callback, should_cancel):
+    """Penalty continuation for stiff handles (module doc); kept only if it lowers J.
+
+    Stages gamma_k = gamma (WARM_TIGHTNESS / t) WARM_FACTOR^k below gamma, t the problem's
+    equivalent tightness (``handle_tightness``); each is solved by GN from the previous one.
+    """
+    problem = state.problem
+    if not _has(problem.handles) or problem.gamma <= 0.0:
+        return
+    gamma = problem.gamma * WARM_TIGHTNESS / handle_tightness(problem)
+    Z = state.Z
+    while gamma < problem.gamma:
+        staged = _State(replace(problem, gamma=gamma), Z.copy(), state.mu)
+        _optimise_z(staged, iterations, max(tolerance, WARM_TOLERANCE), None, None,
+                    should_cancel)
+        state.iterations += staged.iterations
+        Z, gamma = staged.Z, gamma * WARM_FACTOR
+    value = state.evaluate(Z=Z)
+    if Z is not state.Z and value < state.value:
+        state.Z, state.value = Z, value
+        state.record(0, "warm", callback)
+
+
+def handle_tightness(problem):
+    """gamma mean(sigma^2) / dynamics_scale: how much the handles outweigh a frame's dynamics.
+
+    sigma: largest singular value of each handle's rows dq/dzhat(0) S (see ``suggest_weights``).
+    """
+    sigma2 = _handle_curvature(problem.deformer, problem.handles.rows, problem.sampling)
+    return problem.gamma * float(np.mean(problem.handles.weights * sigma2)) / dynamics_scale(
+        problem.h, problem.eigenvalues, problem.damping, problem.scheme)
+
+
+def _handle_curvature(deformer, rows, S):
+    """(c,) sigma^2: squared largest singular value of rows (c, 3, rB) dq/dzhat(0) S (m, r)."""
+    dq = np.asarray(deformer.q_jacobian(np.zeros(deformer.num_coords)))      # (rB, m)
+    return np.linalg.norm(np.asarray(rows) @ (dq @ S), ord=2, axis=(1, 2)) ** 2
+
+
+def _choose_mu(state):
+    """Automatic mu from E_f after the first Z block (module doc).
+
+    S has not moved yet, so mu E_s(S0) is one constant for every entry so far: adding it keeps
+    the history one function of the unknowns (it is 0 for the default [I; 0]).
+    """
+    e_f = control_energy(state.Z, state.eigenvalues, state.damping, state.problem.h,
+                         state.problem.scheme)
+    state.mu = MU_RELATIVE * e_f / state.problem.num_modes if e_f > 0.0 else 1.0
+    shift = state.mu * sampling_energy(state.S)[0]
+    state.history = [(i, block, value + shift) for i, block, value in state.history]
+    state.value = state.evaluate()
+
+
+def _result(state, converged):
+    problem = state.problem
+    keys = problem.keyframes
+    key_res = (np.linalg.norm(state.Z[keys.frames] @ state.S.T - keys.poses, axis=1)
+               if _has(keys) else np.zeros(0))
+    return SpaceTimeResult(
+        Z=state.Z, eigenvalues=state.eigenvalues, damping=state.damping, sampling=state.S,
+        objective=state.value,
+        control_energy=control_energy(state.Z, state.eigenvalues, state.damping, problem.h,
+                                      problem.scheme),
+        handle_residuals=handle_residuals(problem, state.Z, state.S),
+        keyframe_residuals=key_res, history=state.history, iterations=state.iterations,
+        converged=bool(converged), mu=state.mu, scheme=problem.scheme)
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers for callers
+
+def pose_to_modal(modal_rs, volumes, y):
+    """Deformer input zhat = argmin |V^(1/2) (QW z - y)| of RS coordinates.
+
+    modal_rs (E, 9, m) = ``rs.linear_rs(Q, W)``; volumes (E,) [m^3]; y (E, 9) one pose or
+    (K, E, 9) several (e.g. from ``rs.pose_to_rs``). Returns (m,) or (K, m).
+    """
+    modal_rs = np.asarray(modal_rs, dtype=np.float64)
+    E, _, m = modal_rs.shape
+    root = np.sqrt(np.asarray(volumes, dtype=np.float64))
+    A = (root[:, None, None] * modal_rs).reshape(9 * E, m)
+    y = np.asarray(y, dtype=np.float64)
+    B = (root[:, None] * y.reshape(-1, E, 9)).reshape(-1, 9 * E).T           # (9E, K)
+    z = np.linalg.lstsq(A, B, rcond=None)[0].T                              # (K, m)
+    return z[0] if y.ndim == 2 else z
+
+
+def handle_geometry(rest_positions, basis, indices):
+    """A handle on vertices ``indices``: rows (3, rB) = mean of their basis rows, rest (3,).
+
+    rest_positions (N, 3) [m]; basis (3N, rB) node-major (B, or Phi B for render vertices).
+    """
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    rows = np.asarray(basis).reshape(len(rest_positions), 3, -1)[idx].mean(axis=0)
+    return rows, np.asarray(rest_positions, dtype=np.float64)[idx].mean(axis=0)
+
+
+def rayleigh_damping(eigenvalues, alpha_mass, alpha_stiffness):
+    """(r,) modal damping D = alpha_m + alpha_k lambda_k [1/s]."""
+    return alpha_mass + alpha_stiffness * np.asarray(eigenvalues, dtype=np.float64)
+
+
+def dynamics_scale(h, eigenvalues, damping, scheme="auto"):
+    """Largest diagonal entry of the E_f Hessian, max_k a_k^2 + b_k^2 + c_k^2 [1/s^4]."""
+    scheme = resolve_scheme(scheme, h, eigenvalues)
+    return float(np.max(np.sum(stencil(eigenvalues, damping, h, scheme) ** 2, axis=0)))
+
+
+def suggest_weights(h, eigenvalues, damping, deformer=None, handle_rows=None, sampling=None,
+                    tightness=TIGHTNESS, scheme="auto"):
+    """(gamma, keyframe_weight) so constraints outweigh one frame's dynamics by ``tightness``.
+
+    A frame's E_f curvature is at most ``dynamics_scale``; a handle's at rest is gamma sigma^2,
+    sigma the mean largest singular value of rows (c, 3, rB) dq/dzhat(0) S; a keyframe's is w
+    (unit columns of S). A constraint then misses by about its unconstrained miss / tightness
+    (less, since motion spreads over neighbouring frames).
+    """
+    scale = tightness * dynamics_scale(h, eigenvalues, damping, scheme)
+    if deformer is None or handle_rows is None or len(handle_rows) == 0:
+        return scale, scale
+    r = len(np.atleast_1d(eigenvalues))
+    S = np.eye(deformer.num_coords, r) if sampling is None else np.asarray(sampling)
+    return scale / float(np.mean(_handle_curvature(deformer, handle_rows, S))), scale

@@ -1,0 +1,147 @@
+"""Handles, pose keys, takes and the bake's bookkeeping (no solve needed)."""
+import numpy as np
+import pytest
+import bpy
+from mathutils import Matrix
+
+from blender_helpers import make_bar, vertices
+
+
+def tip_group(obj):
+    group = obj.vertex_groups.new(name="Tip")
+    group.add([int(i) for i in np.flatnonzero(vertices(obj)[:, 0] > 4.0 - 1e-9)], 1.0, 'REPLACE')
+    return group
+
+
+def test_handle_from_a_vertex_group_sits_at_its_world_centroid(ext):
+    obj = make_bar()
+    obj.location = (1.0, 2.0, 3.0)
+    obj.rotation_euler = (0.0, 0.0, 0.5)
+    bpy.context.view_layer.update()
+    tip_group(obj)
+    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
+    handle = obj.rs_elastic.handles[0]
+    assert handle.vertex_group == "Tip" and handle.empty.type == 'EMPTY'
+    rest = vertices(obj)
+    centroid = rest[rest[:, 0] > 4.0 - 1e-9].mean(axis=0)
+    expected = np.array(obj.matrix_world @ Matrix.Translation(centroid).to_translation())
+    np.testing.assert_allclose(np.array(handle.empty.location), expected, atol=1e-6)
+
+
+def test_handle_from_the_edit_mode_selection(ext):
+    obj = make_bar()
+    bpy.ops.object.mode_set(mode='EDIT')
+    bpy.ops.mesh.select_all(action='DESELECT')
+    bpy.ops.object.mode_set(mode='OBJECT')
+    tip = vertices(obj)[:, 0] > 4.0 - 1e-9
+    obj.data.vertices.foreach_set("select", tip)
+    bpy.ops.object.mode_set(mode='EDIT')
+    assert bpy.ops.rs_elastic.add_handle() == {'FINISHED'}
+    assert obj.mode == 'EDIT'
+    bpy.ops.object.mode_set(mode='OBJECT')
+    group = obj.vertex_groups[obj.rs_elastic.handles[0].vertex_group]
+    members = {v.index for v in obj.data.vertices for g in v.groups if g.group == group.index}
+    assert members == set(np.flatnonzero(tip))
+
+
+def test_add_handle_refuses_an_empty_selection_and_no_group(ext):
+    obj = make_bar()
+    names = sorted(o.name for o in bpy.data.objects)
+    with pytest.raises(RuntimeError, match="Edit Mode"):
+        bpy.ops.rs_elastic.add_handle()
+    with pytest.raises(RuntimeError, match="does not exist"):
+        bpy.ops.rs_elastic.add_handle(vertex_group="Nope")
+    bpy.ops.object.mode_set(mode='EDIT')
+    bpy.ops.mesh.select_all(action='DESELECT')
+    with pytest.raises(RuntimeError, match="No vertices are selected"):
+        bpy.ops.rs_elastic.add_handle()
+    bpy.ops.object.mode_set(mode='OBJECT')
+    assert sorted(o.name for o in bpy.data.objects) == names
+    assert len(obj.rs_elastic.handles) == 0
+
+
+def test_keyed_empty_locations_become_targets_in_the_body_frame(ext):
+    obj = make_bar()
+    obj.location = (0.5, -1.0, 2.0)
+    obj.rotation_euler = (0.3, 0.0, 1.0)
+    obj.scale = (2.0, 2.0, 2.0)
+    tip_group(obj)
+    bpy.ops.rs_elastic.add_handle(vertex_group="Tip")
+    empty = obj.rs_elastic.handles[0].empty
+    keyed = {10: (3.0, 1.0, 2.0), 25: (-1.0, 4.0, 0.0)}
+    for frame, location in keyed.items():
+        empty.location = location
+        empty.keyframe_insert("location", frame=frame)
+    tracks, warnings = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 101))
+    assert warnings == [] and len(tracks) == 1
+    assert list(tracks[0].frames) == [10, 25]
+    to_body = np.array(obj.matrix_world.inverted())
+    for frame, target in zip(tracks[0].frames, tracks[0].targets):
+        expected = (to_body @ np.r_[keyed[int(frame)], 1.0])[:3]
+        np.testing.assert_allclose(target, expected, atol=1e-6)
+    obj.rs_elastic.handles[0].follow = True
+    tracks, _ = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(5, 15))
+    assert list(tracks[0].frames) == list(range(5, 15))
+
+
+def test_a_deleted_empty_is_reported_and_ignored(ext):
+    obj = make_bar()
+    tip_group(obj)
+    bpy.ops.rs_elastic.add_handle(vertex_group="Tip")
+    empty = obj.rs_elastic.handles[0].empty
+    empty.keyframe_insert("location", frame=5)
+    bpy.data.objects.remove(empty)
+    tracks, warnings = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 11))
+    assert tracks == [] and "Empty was deleted" in warnings[0]
+
+
+def test_pose_keys_keyed_to_one_are_full_pose_constraints(ext):
+    obj = make_bar()
+    obj.shape_key_add(name="Basis")
+    pose = obj.shape_key_add(name="Pose")
+    for frame, value in ((20, 0.0), (30, 1.0), (40, 0.0)):
+        pose.value = value
+        pose.keyframe_insert("value", frame=frame)
+    other = obj.shape_key_add(name="Half")
+    other.value = 0.5
+    other.keyframe_insert("value", frame=30)
+    assert ext.bridge.constraints.read_pose_keys(obj, range(1, 101)) == [(30, "Pose")]
+    assert ext.bridge.constraints.read_pose_keys(obj, range(1, 25)) == []
+
+
+def test_bake_take_and_clear_keep_the_users_keys_and_keyframes(ext):
+    obj = make_bar()
+    obj.shape_key_add(name="Basis")
+    smile = obj.shape_key_add(name="Smile")
+    smile.keyframe_insert("value", frame=3)
+    bake = ext.bridge.bake
+    rest = vertices(obj)
+    poses = np.stack([rest + 0.01 * f for f in range(1, 6)])
+    bake.write_bake(obj, range(1, 6), poses)
+    assert bake.bake_frames(obj) == [1, 2, 3, 4, 5]
+    assert bpy.ops.rs_elastic.keep_take() == {'FINISHED'}
+    frames, take = bake.take_poses(obj)
+    assert frames == [1, 2, 3, 4, 5] and bake.bake_frames(obj) == []
+    np.testing.assert_allclose(take, poses, atol=1e-6)
+    curves = ext.bridge.animation.fcurves(obj.data.shape_keys)
+    assert [c.data_path for c in curves] == ['key_blocks["Smile"].value']
+    bake.write_bake(obj, range(1, 3), poses[:2])
+    assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
+    assert bpy.ops.rs_elastic.clear_bake() == {'CANCELLED'}
+    assert [c.data_path for c in curves] == ['key_blocks["Smile"].value']
+    assert [k.name for k in obj.data.shape_keys.key_blocks][:2] == ["Basis", "Smile"]
+
+
+def test_clear_bake_can_be_undone(ext):
+    """The UI pushes an undo step after every operator flagged UNDO; background mode does not,
+    so the test pushes the two steps the UI would."""
+    assert 'UNDO' in ext.operators.clear_bake.RS_ELASTIC_OT_clear_bake.bl_options
+    obj = make_bar()
+    rest = vertices(obj)
+    ext.bridge.bake.write_bake(obj, range(1, 4), np.stack([rest] * 3))
+    bpy.ops.ed.undo_push(message="baked")
+    assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
+    bpy.ops.ed.undo_push(message="Clear Bake")
+    assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == []
+    bpy.ops.ed.undo()
+    assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == [1, 2, 3]

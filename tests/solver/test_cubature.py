@@ -1,0 +1,151 @@
+"""Tests for solver.cubature: greedy NNLS, training poses, reduced RS cubature training.
+
+Oracles: synthetic problems with a known sparse non-negative solution, scipy.optimize.nnls,
+the rotation and strain of poses computed directly from modal_rs.
+"""
+
+import numpy as np
+import pytest
+from scipy.optimize import nnls
+
+from solver import cubature, fem, meshgen, modes, reduced, rs
+
+DEG = np.pi / 180.0
+
+
+def sparse_problem(seed=0, rows=300, columns=400, support=8):
+    """A (rows, columns) Gaussian, w* >= 0 with ``support`` non-zeros, target = A w*."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(rows, columns))
+    truth = np.zeros(columns)
+    chosen = rng.choice(columns, support, replace=False)
+    truth[chosen] = rng.uniform(0.5, 2.0, support)
+    return A, truth, A @ truth
+
+
+def full_weights(picked, weights, size):
+    w = np.zeros(size)
+    w[picked] = weights
+    return w
+
+
+# Greedy NNLS ---------------------------------------------------------------------------------
+
+def test_greedy_nnls_recovers_an_exactly_sparse_nonnegative_combination():
+    A, truth, target = sparse_problem()
+    picked, weights, history = cubature.greedy_nnls(A, target, tol=1e-10, max_picks=30)
+    np.testing.assert_array_equal(np.sort(picked), np.flatnonzero(truth))
+    np.testing.assert_allclose(full_weights(picked, weights, A.shape[1]), truth, atol=1e-10)
+    assert history[-1] <= 1e-10 and len(history) == len(truth.nonzero()[0]) + 1
+
+
+def test_greedy_nnls_with_callable_columns_and_random_candidates():
+    A, truth, target = sparse_problem(seed=1)
+    requested = []
+
+    def columns(indices):
+        requested.append(len(indices))
+        return A[:, indices]
+
+    picked, weights, history = cubature.greedy_nnls(
+        columns, target, tol=1e-10, max_picks=60, candidates=150, num_columns=A.shape[1],
+        rng=np.random.default_rng(2), refit_every=3)
+    assert max(requested) == 150                                  # only subsets are computed
+    np.testing.assert_allclose(full_weights(picked, weights, A.shape[1]), truth, atol=1e-8)
+    assert history[-1] <= 1e-10
+    with pytest.raises(ValueError):
+        cubature.greedy_nnls(columns, target)                     # num_columns is required
+
+
+def test_greedy_nnls_weights_nonnegative_and_residual_never_grows():
+    """A target outside the cone of the columns: weights stay > 0, the fit is the NNLS optimum."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(120, 60))
+    target = rng.normal(size=120)
+    picked, weights, history = cubature.greedy_nnls(A, target, tol=1e-12, max_picks=60,
+                                                    refit_every=4)
+    assert np.all(weights > 0.0)
+    assert np.all(np.diff(history) <= 1e-12)
+    assert history[-1] > 0.1                                       # not reachable with w >= 0
+    # Once no column correlates positively with the residual, the fit is the global NNLS one.
+    best, _ = nnls(A, target)
+    optimum = np.linalg.norm(A @ best - target) / np.linalg.norm(target)
+    assert history[-1] <= optimum + 1e-9
+
+
+def test_greedy_nnls_progress_can_abort():
+    A, _, target = sparse_problem()
+    calls = []
+
+    def progress(fraction, message):
+        calls.append(fraction)
+        if len(calls) == 3:
+            raise RuntimeError("cancelled by the user")
+
+    with pytest.raises(RuntimeError, match="cancelled"):
+        cubature.greedy_nnls(A, target, tol=1e-10, progress=progress)
+    assert calls == sorted(calls) and len(calls) == 3
+
+
+# Training poses ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_bar():
+    X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (8, 2, 2))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    K = fem.stiffness_matrix(X, T, 1.0e6, 0.45)
+    masses = fem.lumped_masses(X, T, 1000.0)
+    result = modes.linear_modes(K, masses, 6, pinned_nodes=pinned)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), result.vectors)
+    recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned)
+    return X, T, masses, result, modal_rs, recon
+
+
+def test_training_poses_reach_the_target_rotation_or_the_strain_cap(small_bar):
+    _, _, _, result, modal_rs, _ = small_bar
+    Z = cubature.training_poses(6, result.eigenvalues, 60, np.random.default_rng(0),
+                                max_rotation=120.0 * DEG, modal_rs=modal_rs, max_strain=1.0)
+    assert Z.shape == (60, 6)
+    y = np.einsum("ekm,fm->fek", modal_rs, Z)
+    rotation = np.linalg.norm(y[:, :, :3], axis=2).max(axis=1)
+    strain_matrix = np.einsum("fek,kab->feab", y[:, :, 3:], rs.STRAIN_BASIS)
+    strain = np.linalg.norm(strain_matrix, axis=(2, 3)).max(axis=1)
+    assert rotation.max() <= 120.0 * DEG + 1e-9 and strain.max() <= 1.0 + 1e-9
+    at_a_limit = np.isclose(strain, 1.0) | (rotation > 120.0 * DEG * 0.05 - 1e-12)
+    assert at_a_limit.all()
+    assert rotation.max() > 90.0 * DEG                              # beyond 90 deg are trained
+    single = np.count_nonzero(Z, axis=1) == 1
+    assert single.sum() == 20 and set(np.argmax(np.abs(Z[single]), axis=1)) == set(range(6))
+    assert (np.count_nonzero(Z, axis=1) >= 2).sum() == 40
+    np.testing.assert_array_equal(Z, cubature.training_poses(
+        6, result.eigenvalues, 60, np.random.default_rng(0), max_rotation=120.0 * DEG,
+        modal_rs=modal_rs, max_strain=1.0))
+    np.testing.assert_allclose(cubature.pose_extremes(modal_rs, Z), (rotation, strain),
+                               rtol=1e-12)
+
+
+# Reduced RS cubature -------------------------------------------------------------------------
+
+def test_reduced_rs_cubature_training(small_bar):
+    X, T, masses, result, modal_rs, recon = small_bar
+    B = reduced.second_order_basis(X, T, masses, modal_rs, recon, result.vectors, max_size=30)
+    poses = cubature.training_poses(6, result.eigenvalues, 30, np.random.default_rng(1),
+                                    modal_rs=modal_rs)
+    tets, weights, info = cubature.train_reduced_rs_cubature(
+        X, T, modal_rs, B, recon, poses, max_tets=60, tol=1e-3, rng=np.random.default_rng(2))
+    assert len(np.unique(tets)) == len(tets) <= 60 and np.all(weights > 0.0)
+    assert np.all(np.diff(info["history"]) <= 1e-12)
+    # The fit the training reports is the one the deformer evaluates on the training poses.
+    deformer = reduced.ReducedRS.build(X, T, modal_rs, B, recon, tets, weights,
+                                       projection=info["projection"])
+    g = deformer.exact_q(poses)
+    h = g - poses @ deformer.linear_map.T
+    misfit = (deformer.q_batch(poses) - g) / np.linalg.norm(g, axis=1)[:, None]
+    assert np.linalg.norm(misfit) / np.linalg.norm(h / np.linalg.norm(g, axis=1)[:, None]) \
+        == pytest.approx(info["relative_residual"], rel=1e-8)
+
+    def cancel(fraction, message):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        cubature.train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, progress=cancel)
