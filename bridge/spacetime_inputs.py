@@ -53,6 +53,20 @@ def poses_to_modal(tools, points_per_pose):
     return np.array(fitted).reshape(len(fitted), -1)
 
 
+POSE_SAMPLES = 32   # vertices per pose key that must reach the sculpted positions
+
+
+def spread_sample(points, count):
+    """Indices of `count` points spread over the set (farthest-point sampling)."""
+    count = min(count, len(points))
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return np.array(chosen)
+
+
 def _key_positions(obj, name):
     block = obj.data.shape_keys.key_blocks[name]
     co = np.empty(len(block.data) * 3)
@@ -81,11 +95,15 @@ def gather(obj, blender_scene):
         track_slices.append((handle_index[track.name], slice(count, count + c)))
         count += c
 
-    key_frames, key_poses = [], []
+    # A pose key is met as positions of a spread sample of vertices: a sculpted pose need not be
+    # one the modes' RS coordinates can fit, and what the animator sees is the positions.
+    samples = spread_sample(rest, POSE_SAMPLES)
+    sample_rows = tools.surface_basis.reshape(len(rest), 3, -1)[samples]         # (s, 3, rB)
     for frame, name in constraints.read_pose_keys(obj, frames):
-        key_frames.append(frame)
-        key_poses.append(_key_positions(obj, name))
-    take_weights = []
+        target = _key_positions(obj, name)[samples]
+        handle_parts.append((np.full(len(samples), frame - first), sample_rows, rest[samples],
+                             target, np.full(len(samples), 1.0 / len(samples))))
+    key_frames, key_poses = [], []
     if settings.use_take:
         take_frames, take = bake.take_poses(obj)
         if not take_frames:
@@ -93,7 +111,6 @@ def gather(obj, blender_scene):
         inside = [i for i, f in enumerate(take_frames) if frames[0] <= f <= frames[-1]]
         key_frames += [take_frames[i] for i in inside]
         key_poses += [take[i] for i in inside]
-        take_weights = [settings.take_weight] * len(inside)
     if not handle_parts and not key_frames:
         raise InputError(f"Nothing to solve for on '{obj.name}': key a handle's Empty, key a "
                          "shape key to 1 on a frame, or edit a take"
@@ -112,11 +129,10 @@ def gather(obj, blender_scene):
         h, eigenvalues, damping, tools.deformer,
         None if handles is None else handles.rows, tightness=settings.tightness)
     keyframes = None
-    if key_frames:
-        weights = np.r_[np.ones(len(key_frames) - len(take_weights)), take_weights]
+    if key_frames:      # the take's frames, fitted in RS coordinates (they are physical poses)
         keyframes = spacetime.Keyframes(np.array(key_frames) - first,
                                         poses_to_modal(tools, key_poses),
-                                        keyframe_weight * weights)
+                                        np.full(len(key_frames), keyframe_weight * settings.take_weight))
     problem = spacetime.SpaceTimeProblem(
         frames=len(frames), h=h, eigenvalues=eigenvalues, damping=damping,
         deformer=tools.deformer, handles=handles, keyframes=keyframes, gamma=gamma,

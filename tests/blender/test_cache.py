@@ -45,7 +45,8 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
     files = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
     settings = obj.rs_elastic
     assert set(files) == {f"Bar.tets.{settings.tets_key[:16]}.npz",
-                          f"Bar.modes.{settings.prepared_key[:16]}.npz"}
+                          f"Bar.modes.{settings.prepared_key[:16]}.npz",
+                          f"Bar.reduced.{settings.reduced_key[:16]}.npz"}
     bpy.ops.wm.save_mainfile()
 
     script = REOPEN_SCRIPT.format(tools=str(ROOT / "tools"), user_dir=USER_DIR, blend=str(blend))
@@ -54,8 +55,8 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
     assert line, out.stdout + out.stderr
     child = json.loads(line[0][7:])
     assert child["result"] == ["FINISHED"]
-    assert child["stats"].get("tetrahedralize", 0) == 0 and child["stats"].get("modes", 0) == 0
-    assert child["stats"]["tets_cache_hits"] == 1 and child["stats"]["modes_cache_hits"] == 1
+    assert all(child["stats"].get(stage, 0) == 0 for stage in ("tetrahedralize", "modes", "reduced"))
+    assert all(child["stats"][f"{stage}_cache_hits"] == 1 for stage in ("tets", "modes", "reduced"))
     np.testing.assert_allclose(child["frequencies"], obj.rs_elastic.frequencies, rtol=1e-12)
     assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == files
 
@@ -93,7 +94,8 @@ def test_unsaved_file_uses_the_temp_folder(ext):
     obj = prepare_bar(ext)
     assert sorted(os.listdir(ext.bridge.bodies.cache_dirs()[0])) == sorted(
         [f"Bar.modes.{obj.rs_elastic.prepared_key[:16]}.npz",
-         f"Bar.tets.{obj.rs_elastic.tets_key[:16]}.npz"])
+         f"Bar.tets.{obj.rs_elastic.tets_key[:16]}.npz",
+         f"Bar.reduced.{obj.rs_elastic.reduced_key[:16]}.npz"])
 
 
 def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
@@ -103,4 +105,4 @@ def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
     obj.rs_elastic.youngs_modulus *= 3
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     new = set(os.listdir(folder))
-    assert len(new) == 2 and len(old & new) == 1      # the tets are shared, the old modes gone
+    assert len(new) == 3 and len(old & new) == 1      # the tets are shared; old modes, reduced gone

@@ -466,6 +466,26 @@ def test_moving_frame_is_frame_invariant(bar):
     np.testing.assert_allclose(same.q, fixed.q, atol=1e-10 * scale)
 
 
+def test_linear_modes_give_closed_form_damped_implicit_euler(bar):
+    """With q = s (``reduced.LinearDeformer``, B = W mass-orthonormal) and the linear material
+    each step is linear: ((1 + alpha h)/h^2 + (1 + beta/h) Lambda) s_{n+1} =
+    ((2 + alpha h) s_n - s_{n-1})/h^2 + W^T M g + (beta/h) Lambda s_n."""
+    W, lam = bar["modes"].vectors, bar["modes"].eigenvalues
+    h, alpha, beta = 1.0 / 24.0, 0.7, 0.02
+    sim = dynamics.Simulation(reduced.LinearDeformer(12, W), bar["X"], bar["masses"],
+                              bar["potential"], h, gravity=GRAVITY, mass_damping=alpha,
+                              stiffness_damping=beta, tolerance=1e-12)
+    trajectory = sim.run(20)
+    force = W.T @ (np.repeat(bar["masses"], 3) * np.tile(GRAVITY, len(bar["X"])))
+    lhs = (1.0 + alpha * h) / h ** 2 + (1.0 + beta / h) * lam
+    s = [np.zeros(12), np.zeros(12)]
+    for _ in range(20):
+        s.append((((2.0 + alpha * h) * s[-1] - s[-2]) / h ** 2 + force
+                  + (beta / h) * lam * s[-1]) / lhs)
+    np.testing.assert_allclose(trajectory.coords, s[1:], rtol=1e-9,
+                               atol=1e-9 * np.abs(s[-1]).max())
+
+
 # Interface -----------------------------------------------------------------------------------
 
 def test_run_reports_progress_and_cancels(bar):
