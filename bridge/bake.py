@@ -89,7 +89,25 @@ def remove_keys(obj, prefix):
             fcurves.remove(curve)
     for key in doomed:
         obj.shape_key_remove(key)
+    _drop_bare_basis(obj)
     return len(doomed)
+
+
+def _drop_bare_basis(obj):
+    """Remove a Basis left alone with nothing animating it: it only repeats the mesh, and the
+    bake or key set that needed it is gone, so the object is as it was before."""
+    keys = obj.data.shape_keys
+    if keys is None or len(keys.key_blocks) != 1:
+        return
+    curves = _fcurves(keys, create=False)
+    if curves is not None and len(curves) > 0:
+        return
+    basis = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+    keys.key_blocks[0].data.foreach_get("co", basis)
+    mesh = np.empty_like(basis)
+    obj.data.vertices.foreach_get("co", mesh)
+    if np.array_equal(basis, mesh):
+        obj.shape_key_clear()
 
 
 def keep_bake_as_take(obj):

@@ -317,7 +317,7 @@ def reduced_stage(inputs, tet_body, linear_modes, job):
         masses = fem.lumped_masses(X, T, inputs.density)
         deformer, _ = reduced.prepare_reduced_rs(
             X, T, masses, linear_modes.vectors, linear_modes.eigenvalues, recon,
-            max_size=inputs.basis_size, max_tets=inputs.cubature_tets,
+            max_size=inputs.basis_size or None, max_tets=inputs.cubature_tets,
             tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
             progress=lambda f, message: job.step(0.72 + 0.27 * f, f"Reduced RS: {message}"))
         _save_cached(inputs, "reduced", key, deformer.save_arrays(), job)

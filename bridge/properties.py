@@ -75,8 +75,9 @@ class RSElasticSettings(bpy.types.PropertyGroup):
 
     # --- Reduced RS (basis and cubature) ------------------------------------------------------------
     basis_size: IntProperty(
-        name="Basis Size", default=120, min=1, soft_max=300,
-        description="Largest reduced basis: the modes plus their second-order RS terms")
+        name="Basis Size", default=0, min=0, soft_max=300,
+        description="Largest reduced basis: the modes plus their higher-order RS terms "
+                    "(0: automatic, up to 160)")
     cubature_tets: IntProperty(
         name="Cubature Tets", default=150, min=1, soft_max=1000,
         description="Largest number of tets the reduced RS map is evaluated on")
@@ -86,6 +87,18 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     training_poses: IntProperty(
         name="Training Poses", default=80, min=4, soft_max=400,
         description="Random large-rotation poses the cubature is trained on")
+
+    # --- Simulation ---------------------------------------------------------------------------------
+    material_model: EnumProperty(
+        name="Material Model", default='LINEAR',
+        items=[('LINEAR', "Linear", "Linear elasticity on the rotation-free (Cauchy) strain"),
+               ('STVK', "StVK", "St. Venant-Kirchhoff on the Cauchy strain: stiffer when "
+                                "strongly stretched"),
+               ('FUNG', "Fung", "Exponential stiffening, like soft tissue")],
+        description="How the body resists strain in the simulation")
+    fung_stiffening: FloatProperty(
+        name="Fung Stiffening", default=10.0, min=0.1, soft_max=100.0,
+        description="How soon the Fung material stiffens: around a strain of 1/sqrt(this)")
 
     # --- Results, written by the operators -----------------------------------------------------------
     tet_node_count: IntProperty(name="Nodes", default=0)

@@ -1,7 +1,7 @@
 """One operator per user action; see each module."""
 from . import (add_handle, apply_material_preset, clear_bake, interpolate_shape_keys, keep_take,
-               prepare, solve_spacetime, tetrahedralize)
+               prepare, simulate, solve_spacetime, tetrahedralize)
 
 MODULES = (tetrahedralize, prepare, apply_material_preset, interpolate_shape_keys, add_handle,
-           solve_spacetime, clear_bake, keep_take)
+           solve_spacetime, simulate, clear_bake, keep_take)
 CLASSES = tuple(cls for module in MODULES for cls in module.CLASSES)

@@ -8,6 +8,11 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``tetmesh``  fTetWild tetrahedralisation, run in a separate process so a crash cannot kill Blender.
 - ``rs``       rotation-strain coordinates: Q, polar/log/exp, Jacobians, Poisson reconstruction Ψ.
 - ``transfer`` carries a pose of the render mesh over to the tet nodes.
+- ``reduced``  reduced RS: the basis B, per-tet projections, the deformer z -> q -> u = B q.
+- ``cubature`` training poses and greedy NNLS cubature (An et al. 2008).
+- ``spacetime`` space-time editing with material optimisation (Gauss-Newton on banded systems).
+- ``materials`` linear, StVK and Fung materials on the Cauchy strain; the reduced potential V(s).
+- ``dynamics`` implicit-Euler subspace dynamics in RS coordinates, free or moving frames.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
 

@@ -34,9 +34,7 @@ from . import cubature, rs
 
 # (E, 6) strain -> (E, 3, 3) matrix: entry (i, j) of the symmetric matrix is component FULL[3i+j].
 _FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
-# Row-major positions of the six components in a 3x3 matrix, and d eps_matrix / d eps_k counts:
-# tr(P dEps) = sum_k P[SIX[k]] * MULT[k] de_k for a symmetric P.
-_SIX = np.array([0, 1, 2, 4, 5, 8])
+# How often each component appears in the 3x3 matrix: <B_k, B_l> = diag(_MULT).
 _MULT = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
 _TRACE = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])       # tr(eps) = _TRACE . e
 _BASIS = rs.STRAIN_BASIS                                 # (6, 3, 3) d eps / d e_k
@@ -46,11 +44,6 @@ def strain_matrices(strain):
     """(E, 3, 3) symmetric strain matrices of (E, 6) components [xx, xy, xz, yy, yz, zz]."""
     strain = np.asarray(strain, dtype=np.float64)
     return strain[..., _FULL].reshape(strain.shape[:-1] + (3, 3))
-
-
-def _components(P):
-    """d psi / d e (..., 6) of a symmetric matrix gradient P (..., 3, 3) = d psi / d eps."""
-    return P.reshape(P.shape[:-2] + (9,))[..., _SIX] * _MULT
 
 
 def _linear_tensor(mu, lam):
@@ -80,46 +73,62 @@ class Linear:
         return psi, (grad if order >= 1 else None), hess
 
 
+def _green_constants():
+    """Constant tensors of the StVK derivatives (see ``_GreenParts``).
+
+    half_products (9, 54): vec(S) -> [vec((B_k S + S B_k) / 2)]_k, built by applying the map
+    to the nine unit matrices. symmetric_products (9, 36): vec(E) -> [<E, (B_k B_l + B_l B_k)/2>].
+    """
+    units = np.eye(9).reshape(9, 1, 3, 3)
+    half_products = 0.5 * (_BASIS @ units + units @ _BASIS)                # (9, 6, 3, 3)
+    products = _BASIS[:, None] @ _BASIS[None]                            # (6, 6, 3, 3)
+    symmetric = 0.5 * (products + np.swapaxes(products, 0, 1))
+    return half_products.reshape(9, 54), symmetric.reshape(36, 9).T.copy()
+
+
+_HALF_PRODUCTS, _SYMMETRIC_PRODUCTS = _green_constants()
+_BASIS_COLUMNS = _BASIS.reshape(6, 9).T                                 # (9, 6): vec(B_k)
+_BASIS_GRAM = np.diag(_MULT)                                            # <B_k, B_l>
+
+
 class _GreenParts:
     """Per-tet pieces shared by StVK evaluations of one strain array (E, 6).
 
-    StVK is linear in (mu, lam): psi = mu psi_mu + lam psi_lam, and likewise its derivatives, so
-    Fung's two StVK terms reuse everything here. For a symmetric stress-like S the matrix
-    gradient is P = S + (eps S + S eps) / 2 (from dE_G = deps + (deps eps + eps deps) / 2).
+    With S = I + eps and E_G = (S^2 - I)/2, along strain component k: dE_k = (B_k S + S B_k)/2
+    (B_k = d eps / d e_k) and d^2 E / de_k de_l = (B_k B_l + B_l B_k)/2. So for
+    psi = mu tr(E_G^2) + lam/2 tr(E_G)^2, with stress Sigma = 2 mu E_G + lam tr(E_G) I:
+    grad_k = <Sigma, dE_k> and hess_kl = 2 mu <dE_k, dE_l> + lam <S, B_k><S, B_l>
+    + <Sigma, (B_k B_l + B_l B_k)/2> (tr dE_k = <S, B_k>). Every piece is linear in (mu, lam),
+    so Fung's two StVK terms share this object; all are a few GEMMs over the tets.
     """
 
     def __init__(self, strain, order):
         self.order = order
-        self.eps = strain_matrices(strain)                                    # (E, 3, 3)
-        self.green = self.eps + 0.5 * self.eps @ self.eps
-        self.trace = np.trace(self.green, axis1=-2, axis2=-1)                 # (E,)
+        n = len(strain)
+        S = strain_matrices(strain) + np.eye(3)                               # (E, 3, 3)
+        self.green = (0.5 * (S @ S - np.eye(3))).reshape(n, 9)                # vec E_G
+        self.trace = self.green[:, 0] + self.green[:, 4] + self.green[:, 8]
+        if order >= 1:
+            S9 = S.reshape(n, 9)
+            self.d_green = (S9 @ _HALF_PRODUCTS).reshape(n, 6, 9)             # vec dE_k
+            self.stretch = S9 @ _BASIS_COLUMNS                                # <S, B_k> (E, 6)
         if order >= 2:
-            eps = self.eps[:, None]
-            self.d_green = _BASIS + 0.5 * (_BASIS @ eps + eps @ _BASIS)       # (E, 6, 3, 3)
-            self.d_trace = np.trace(self.d_green, axis1=-2, axis2=-1)         # (E, 6)
-
-    def _stress_gradient(self, S):
-        return S + 0.5 * (self.eps @ S + S @ self.eps)
-
-    def _stress_hessian(self, S, dS):
-        """(E, 6, 6) from S (E, 3, 3) and dS (E, 6, 3, 3) = dS/de_k."""
-        eps, S = self.eps[:, None], S[:, None]
-        dP = dS + 0.5 * (_BASIS @ S + eps @ dS + dS @ eps + S @ _BASIS)
-        H = _components(dP)
-        return 0.5 * (H + np.swapaxes(H, 1, 2))
+            self.gram = self.d_green @ np.swapaxes(self.d_green, 1, 2)        # (E, 6, 6)
+            self.curvature = (self.green @ _SYMMETRIC_PRODUCTS).reshape(n, 6, 6)
 
     def stvk(self, mu, lam):
         """(psi, grad, hess) of mu tr(E_G^2) + lam/2 tr(E_G)^2 up to ``order``."""
-        eye = np.eye(3)
-        psi = mu * np.einsum("eij,eij->e", self.green, self.green) + 0.5 * lam * self.trace ** 2
+        psi = mu * np.einsum("ei,ei->e", self.green, self.green) + 0.5 * lam * self.trace ** 2
         if self.order < 1:
             return psi, None, None
-        S = 2.0 * mu * self.green + lam * self.trace[:, None, None] * eye
-        grad = _components(self._stress_gradient(S))
+        grad = (2.0 * mu * np.einsum("eki,ei->ek", self.d_green, self.green)
+                + lam * self.trace[:, None] * self.stretch)
         if self.order < 2:
             return psi, grad, None
-        dS = 2.0 * mu * self.d_green + lam * self.d_trace[:, :, None, None] * eye
-        return psi, grad, self._stress_hessian(S, dS)
+        hess = (2.0 * mu * (self.gram + self.curvature)
+                + lam * (self.stretch[:, :, None] * self.stretch[:, None, :]
+                         + self.trace[:, None, None] * _BASIS_GRAM))
+        return psi, grad, hess
 
 
 @dataclass(frozen=True)

@@ -69,8 +69,7 @@ def test_solve_puts_the_handle_on_its_empty_on_every_keyed_frame(ext):
     assert ext.bridge.bake.bake_frames(obj) == list(range(1, 61))
     assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
     bpy.context.scene.frame_set(1)
-    assert obj.data.shape_keys is None or len(obj.data.shape_keys.key_blocks) == 1
-    np.testing.assert_array_equal(vertices(obj), vertices(obj))
+    assert fingerprint(obj) == user
 
 
 def test_material_optimisation_bakes_and_lowers_nothing_it_should_not(ext):

@@ -486,6 +486,26 @@ def test_linear_modes_give_closed_form_damped_implicit_euler(bar):
                                atol=1e-9 * np.abs(s[-1]).max())
 
 
+def test_rs_map_curvature_matches_finite_differences(soft_run):
+    """The Newton term sum_i g_i d^2 q_i/ds^2 against central differences of J(s)^T g, from rest
+    to rotations past 120 deg (it relies on ReducedRS's q formula: this catches a change)."""
+    deformer = soft_run[0]["deformer"]
+    curvature = dynamics._GeometricStiffness(deformer)
+    rng = np.random.default_rng(11)
+    per_unit = np.linalg.norm(soft_run[0]["modal_rs"][:, :3, :], axis=1).max(axis=0)
+    errors = []
+    for angle in (1e-4, 0.5, 2.2):
+        s = rng.normal(size=12) / per_unit
+        s *= angle / np.linalg.norm(soft_run[0]["modal_rs"][:, :3, :] @ s, axis=1).max()
+        g = rng.normal(size=deformer.basis_size)
+        h = 1e-6 * np.abs(s).max()
+        fd = np.stack([(deformer.q_jacobian(s + h * e).T @ g - deformer.q_jacobian(s - h * e).T @ g)
+                       / (2.0 * h) for e in np.eye(12)], axis=1)
+        errors.append(np.abs(curvature(s, g) - fd).max() / np.abs(fd).max())
+    print(f"RS map curvature vs central differences: max relative error {max(errors):.1e}")
+    assert max(errors) < 1e-5
+
+
 # Interface -----------------------------------------------------------------------------------
 
 def test_run_reports_progress_and_cancels(bar):

@@ -1,0 +1,108 @@
+"""Gather a simulation from the scene (main thread) and run it (worker thread)."""
+import dataclasses
+
+import numpy as np
+
+from ..solver import dynamics, fem, materials
+from . import rs_tools, scene, spacetime_inputs
+from .jobs import Cancelled
+from .scene import InputError
+
+
+@dataclasses.dataclass
+class SimulationJob:
+    object_name: str
+    frames: list
+    simulation: dynamics.Simulation
+    rows: np.ndarray        # (3n, rB) Φ B
+    rest: np.ndarray        # (n, 3) base vertices, object space
+    free: bool
+    warnings: list
+
+
+def object_motion(obj, blender_scene, frames):
+    """(rotations (F, 3, 3), translations (F, 3)) of the object's world transform per frame, or
+    None if it does not move over the range (keys, parents and constraints all count)."""
+    current = blender_scene.frame_current
+    matrices = []
+    try:
+        for frame in frames:
+            blender_scene.frame_set(frame)
+            matrices.append(np.array(obj.matrix_world))
+    finally:
+        blender_scene.frame_set(current)
+    matrices = np.array(matrices)
+    if np.abs(matrices - matrices[0]).max() < 1e-9:
+        return None
+    linear = matrices[:, :3, :3]
+    U, _, Vt = np.linalg.svd(linear)                  # the rotation part, scale removed
+    return U @ Vt, matrices[:, :3, 3]
+
+
+def potential_for(tools, settings):
+    """The reduced potential of the body's material (cached on the RSTools per model)."""
+    cache = tools.__dict__.setdefault("_potentials", {})
+    key = (settings.material_model, settings.fung_stiffening, settings.youngs_modulus,
+           settings.poisson_ratio)
+    if key not in cache:
+        mu, lam = fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)
+        material = materials.make_material(settings.material_model, mu, lam,
+                                           fung_stiffening=settings.fung_stiffening)
+        volumes = np.abs(fem.tet_volumes(tools.nodes, tools.tets))
+        cache[key], _ = materials.prepare_potential(
+            material, tools.modal_rs, volumes, eigenvalues=tools.body.linear_modes.eigenvalues)
+    return cache[key]
+
+
+def gather(obj, blender_scene):
+    """Validate and set up the simulation. Raises InputError."""
+    scene.require_mesh_object(obj)
+    tools = spacetime_inputs.prepared_tools(obj)
+    settings = obj.rs_elastic
+    frames = spacetime_inputs.frame_range(obj, blender_scene)
+    warnings = []
+    free = len(tools.pinned_nodes) == 0
+    fps = blender_scene.render.fps / blender_scene.render.fps_base
+    h = 1.0 / fps
+    gravity = np.array(blender_scene.gravity) if blender_scene.use_gravity else np.zeros(3)
+    motion = object_motion(obj, blender_scene, frames)
+    scale = np.array(obj.matrix_world.to_scale())
+    if np.abs(scale - 1.0).max() > 1e-6:
+        warnings.append(f"'{obj.name}' is scaled by {tuple(np.round(scale, 3))}: the simulation "
+                        "treats its object space as metres")
+    frame_motion = None
+    if motion is not None:
+        if free:
+            raise InputError(f"'{obj.name}' is animated but has no pins: give it a Pin Group so "
+                             "its keyed motion has something to carry")
+        rotations, translations = motion
+        times = (np.array(frames) - frames[0]) * h
+        frame_motion = dynamics.FrameMotion(times, rotations, translations)
+    else:
+        # A still object: simulate in its own space, with gravity turned into it.
+        rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())
+        gravity = rotation.T @ gravity
+    masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+    simulation = dynamics.Simulation(
+        tools.deformer, tools.nodes, masses, potential_for(tools, settings), h, gravity=gravity,
+        mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
+        free=free, frame_motion=frame_motion)
+    return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
+                         scene.base_vertices(obj), free, warnings)
+
+
+def run(job_inputs, job):
+    """Worker thread: simulate every frame and return the base-vertex poses (F, n, 3)."""
+    steps = len(job_inputs.frames) - 1
+
+    def progress(step, total):
+        job.step(step / total, f"frame {job_inputs.frames[0] + step} of {job_inputs.frames[-1]}")
+
+    try:
+        trajectory = job_inputs.simulation.run(steps, callback=progress,
+                                               should_cancel=job.is_cancelled)
+    except dynamics.SimulationCancelled:
+        raise Cancelled() from None
+    if job_inputs.free:   # the floating frame's motion is part of the pose in object space
+        return trajectory.world_positions(job_inputs.rest, job_inputs.rows)
+    return job_inputs.rest[None] + trajectory.body_displacements(job_inputs.rows)

@@ -1,0 +1,95 @@
+"""Simulation end to end in the installed extension, and its command line."""
+import numpy as np
+import pytest
+import bpy
+
+from blender_helpers import diagonal, evaluated_vertices, fingerprint, link_mesh, make_bar, vertices
+from test_spacetime import run_cli
+
+
+def prepared(obj, num_modes=6, edge_length=0.08):
+    obj.rs_elastic.edge_length = edge_length
+    obj.rs_elastic.num_modes = num_modes
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    return obj
+
+
+def baked_positions(obj, frames):
+    out = []
+    for frame in frames:
+        bpy.context.scene.frame_set(frame)
+        out.append(evaluated_vertices(obj))
+    return np.array(out)
+
+
+def test_a_keyed_prop_lags_swings_and_settles(ext):
+    scene = bpy.context.scene
+    scene.use_gravity = False
+    scene.frame_start, scene.frame_end = 1, 120
+    obj = prepared(make_bar(name="Prop", cuts=3))
+    obj.rs_elastic.damping_mass = 1.0
+    # The prop is carried sideways (along +y) between frames 1 and 12, then held.
+    obj.keyframe_insert("location", frame=1)
+    obj.location = (0.0, 3.0, 0.0)
+    obj.keyframe_insert("location", frame=12)
+    before = fingerprint(obj)
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    assert ext.bridge.bake.bake_frames(obj) == list(range(1, 121))
+    rest = vertices(obj)
+    tip, pinned = rest[:, 0] > 4.0 - 1e-9, rest[:, 0] < 1e-9
+    local = baked_positions(obj, range(1, 121))                  # object space: the body frame
+    sway = local[:, tip, 1].mean(axis=1) - rest[tip, 1].mean()
+    assert sway[:6].min() < -0.05 * diagonal(rest)               # lags behind while speeding up
+    assert sway[10:30].max() > 0.05 * diagonal(rest)             # swings past when stopped
+    assert abs(sway[-1]) < 0.2 * np.abs(sway).max()              # and settles
+    assert np.abs(local[:, pinned] - rest[pinned]).max() < 1e-6  # pins follow the keys exactly
+    # The bake replaced nothing of the user's: clearing it restores the object.
+    assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
+    assert fingerprint(obj) == before
+
+
+def test_a_free_body_falls_with_gravity_and_does_not_spin(ext):
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 25
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=0.5)
+    obj = prepared(bpy.context.active_object, num_modes=4, edge_length=0.15)
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    positions = baked_positions(obj, range(1, 26))
+    h = 1.0 / scene.render.fps
+    t = np.arange(25) * h
+    drop = positions.mean(axis=1)[:, 2] - vertices(obj).mean(axis=0)[2]
+    expected = -0.5 * 9.81 * t ** 2
+    assert np.abs(drop - expected).max() < 0.05 * abs(expected[-1])
+    horizontal = positions.mean(axis=1)[:, :2] - vertices(obj).mean(axis=0)[:2]
+    assert np.abs(horizontal).max() < 1e-3
+
+
+def test_simulate_refuses_bad_input_and_changes_nothing(ext):
+    obj = make_bar(pin_end=False)
+    before = fingerprint(obj)
+    with pytest.raises(RuntimeError, match="not prepared"):
+        bpy.ops.rs_elastic.simulate()
+    prepared(obj, num_modes=3, edge_length=0.12)
+    obj.keyframe_insert("location", frame=1)
+    obj.location = (1.0, 0.0, 0.0)
+    obj.keyframe_insert("location", frame=10)
+    before = fingerprint(obj)
+    with pytest.raises(RuntimeError, match="no pins"):
+        bpy.ops.rs_elastic.simulate()
+    assert fingerprint(obj) == before
+
+
+def test_command_line_simulates_a_saved_file(ext, tmp_path):
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 24
+    prepared(make_bar(cuts=3))
+    blend = tmp_path / "jelly.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    result = run_cli(blend, ["bake", "--mode", "simulate", "--object", "Bar"])
+    assert result.returncode == 0, result.stdout + result.stderr
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    obj = bpy.data.objects["Bar"]
+    assert ext.bridge.bake.bake_frames(obj) == list(range(1, 25))
+    bpy.context.scene.frame_set(24)
+    sag = vertices(obj)[:, 2].min() - evaluated_vertices(obj)[:, 2].min()
+    assert sag > 0.01                                            # gravity pulled the tip down
