@@ -335,8 +335,8 @@ class Simulation:
         mB = masses[:, None, None] * Bk
         self.S0 = Xb.T @ (masses[:, None] * Xb)                                  # (3, 3)
         self.H0 = np.einsum("kia,kj->ija", mB, Xb)                              # (3, 3, rB)
-        self.H1 = np.empty((3, 3, rB, rB))                                      # [i,j] = sum m B_i^T B_j
-        for i in range(3):                                                      # 9 GEMMs, not per vertex
+        self.H1 = np.empty((3, 3, rB, rB))               # [i, j] = sum m B_k[i]^T B_k[j]
+        for i in range(3):                               # nine GEMMs, no loop over vertices
             for j in range(3):
                 self.H1[i, j] = mB[:, i, :].T @ Bk[:, j, :]
         if self.free:

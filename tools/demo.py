@@ -1,10 +1,13 @@
-"""`make demo`: build a scene from nothing, prepare it with the installed extension, save it and
-render a picture.
+"""`make demo`: build scenes from nothing with the installed extension, save them and render.
 
-Scene: a rubber bar pinned at one end and a free rubber Suzanne, each shown in three rows: at rest,
-displaced along its first mode by the linear preview (which stretches and inflates), and by the
-RS preview at the same amplitude (which bends and keeps its volume).
-Writes <output>/demo.blend and <output>/demo.png.
+1. The showcase (demo.blend, demo.png, a contact sheet of frames):
+   - a rubber bar pinned at one end whose tip is pulled through two keyed Empties and released,
+     solved by space-time editing with material optimisation and baked;
+   - a jelly antenna pinned at its foot, simulated under gravity;
+   - a keyed prop (a rubber rod carried sideways and stopped), simulated: its secondary motion.
+2. Modes (modes.blend, modes.png): a pinned bar and a free Suzanne at rest, along their first
+   mode by the linear preview (which stretches and inflates) and by the RS preview at the same
+   amplitude (which bends and keeps its volume).
 """
 import argparse
 import os
@@ -14,7 +17,9 @@ import sys
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import blender_session  # noqa: E402
 
-ROW_GAP = 3.4   # metres between the rows
+SHEET_FRAMES = (1, 14, 22, 30, 44, 72)
+TILE = (640, 360)
+ROW_GAP = 3.4   # metres between the rows of the modes picture
 
 
 def parse_args():
@@ -24,45 +29,169 @@ def parse_args():
     return parser.parse_args()
 
 
-def make_bar(bpy, np):
-    """A 4 m × 0.5 m × 0.5 m rubber bar along +x, pinned at x = 0 through the 'Pin' group."""
+# --- scene building ---------------------------------------------------------------------------
+
+def make_box(bpy, np, name, size, cuts, pin_axis=0, location=(0.0, 0.0, 0.0)):
+    """A box of `size` starting at the origin along +`pin_axis`, pinned at that end ('Pin')."""
     bpy.ops.mesh.primitive_cube_add(size=1.0)
-    bar = bpy.context.active_object
-    bar.name = "Rubber Bar"
+    obj = bpy.context.active_object
+    obj.name = name
     bpy.ops.object.mode_set(mode='EDIT')
-    bpy.ops.mesh.subdivide(number_cuts=9)
+    bpy.ops.mesh.subdivide(number_cuts=cuts)
     bpy.ops.object.mode_set(mode='OBJECT')
-    co = np.empty(len(bar.data.vertices) * 3)
-    bar.data.vertices.foreach_get("co", co)
-    co = (co.reshape(-1, 3) + (0.5, 0.0, 0.0)) * (4.0, 0.5, 0.5)
-    bar.data.vertices.foreach_set("co", co.ravel())
-    bar.data.update()
-    pin = bar.vertex_groups.new(name="Pin")
-    pin.add([int(i) for i in np.flatnonzero(co[:, 0] < 1e-6)], 1.0, 'REPLACE')
-    bar.rs_elastic.pin_group = "Pin"
-    bar.location = (-4.5, 0.0, 0.0)
-    return bar
-
-
-def make_suzanne(bpy):
-    bpy.ops.mesh.primitive_monkey_add(size=2.0, location=(3.0, 0.0, 0.0))
-    suzanne = bpy.context.active_object
-    suzanne.name = "Suzanne"
+    co = np.empty(len(obj.data.vertices) * 3)
+    obj.data.vertices.foreach_get("co", co)
+    shift = np.full(3, 0.0)
+    shift[pin_axis] = 0.5
+    co = (co.reshape(-1, 3) + shift) * np.array(size)
+    obj.data.vertices.foreach_set("co", co.ravel())
+    obj.data.update()
+    if pin_axis is not None:
+        pin = obj.vertex_groups.new(name="Pin")
+        pin.add([int(i) for i in np.flatnonzero(co[:, pin_axis] < 1e-6)], 1.0, 'REPLACE')
+        obj.rs_elastic.pin_group = "Pin"
+    obj.location = location
     bpy.ops.object.shade_smooth()
-    return suzanne
+    return obj
 
 
-def prepare(bpy, obj, edge_length, amplitude):
+def prepare(bpy, obj, preset, edge_length, num_modes=12):
+    """Prepare `obj` with a material preset (None: keep the material already set)."""
     bpy.context.view_layer.objects.active = obj
-    bpy.ops.rs_elastic.apply_material_preset(preset='RUBBER')
+    if preset is not None:
+        bpy.ops.rs_elastic.apply_material_preset(preset=preset)
     obj.rs_elastic.edge_length = edge_length
-    obj.rs_elastic.num_modes = 12
+    obj.rs_elastic.num_modes = num_modes
     if bpy.ops.rs_elastic.prepare() != {'FINISHED'}:
         sys.exit(f"demo: preparing {obj.name} failed")
-    obj.rs_elastic.preview_amplitude = amplitude
-    f = obj.rs_elastic.frequencies
-    print(f"demo: {obj.name}: {obj.rs_elastic.tet_count} tets, modes {f[0]:.2f} … {f[-1]:.2f} Hz")
+    s = obj.rs_elastic
+    print(f"demo: {obj.name}: {s.tet_count} tets, modes {s.frequencies[0]:.2f} … "
+          f"{s.frequencies[-1]:.2f} Hz, reduced basis {s.reduced_basis_count}, "
+          f"cubature {s.cubature_count} tets")
 
+
+def add_label(bpy, text, location, size=0.45, name=None):
+    curve = bpy.data.curves.new(name or text, 'FONT')
+    curve.body = text
+    curve.size = size
+    curve.align_x = 'CENTER'
+    label = bpy.data.objects.new(name or text, curve)
+    label.location = location
+    label.rotation_euler = (1.5708, 0.0, 0.0)
+    bpy.context.scene.collection.objects.link(label)
+    return label
+
+
+def stage(bpy, camera_location, lens, resolution):
+    scene = bpy.context.scene
+    bpy.ops.object.camera_add(location=camera_location, rotation=(1.5708, 0.0, 0.0))
+    scene.camera = bpy.context.active_object
+    scene.camera.data.lens = lens
+    scene.render.engine = 'BLENDER_WORKBENCH'
+    scene.display.shading.light = 'STUDIO'
+    scene.display.shading.color_type = 'OBJECT'
+    scene.display.shading.show_cavity = True
+    scene.render.resolution_x, scene.render.resolution_y = resolution
+    if scene.world is None:
+        scene.world = bpy.data.worlds.new("Demo")
+
+
+# --- the showcase -------------------------------------------------------------------------------
+
+def showcase(bpy, np, output):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(output / "demo.blend"))   # caches go next to it
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 90
+    scene.render.fps = 24
+
+    # 1. Space-time: the tip is pulled up and over by two keyed Empties, then let go.
+    bar = make_box(bpy, np, "Edited Bar", (4.0, 0.5, 0.5), 9, location=(-6.5, 0.0, 0.0))
+    bar.color = (0.85, 0.35, 0.2, 1.0)
+    prepare(bpy, bar, 'RUBBER', 0.04)
+    tip = bar.vertex_groups.new(name="Tip")
+    co = np.empty(len(bar.data.vertices) * 3)
+    bar.data.vertices.foreach_get("co", co)
+    tip.add([int(i) for i in np.flatnonzero(co.reshape(-1, 3)[:, 0] > 4.0 - 1e-6)], 1.0, 'REPLACE')
+    bpy.ops.rs_elastic.add_handle(vertex_group="Tip")
+    empty = bar.rs_elastic.handles[0].empty
+    # Rest tip: (-2.5, 0, 0.25). Frame 14: bent up about 45°; frame 30: about 90°, then let go.
+    for frame, location in ((14, (-3.2, 0.0, 2.2)), (30, (-4.4, 0.0, 3.0))):
+        empty.location = location
+        empty.keyframe_insert("location", frame=frame)
+    bar.rs_elastic.optimize_material = True
+    bar.rs_elastic.iterations = 6
+    if bpy.ops.rs_elastic.solve_spacetime() != {'FINISHED'}:
+        sys.exit("demo: the space-time solve failed")
+    print(f"demo: {bar.name}: handle residual {bar.rs_elastic.handles[0].residual:.2g} m, "
+          f"{len(bar.rs_elastic.solve_history)} objective values, last "
+          f"{bar.rs_elastic.solve_history[-1].value:.4g}")
+
+    # 2. Simulation: a jelly antenna, pinned at its foot, sags and wobbles under gravity.
+    antenna = make_box(bpy, np, "Rubber Antenna", (0.4, 0.4, 2.5), 7, pin_axis=2,
+                       location=(0.3, 0.0, -1.0))
+    antenna.rotation_euler = (0.0, 0.5, 0.0)        # leaning, so gravity bends it
+    antenna.color = (0.35, 0.75, 0.35, 1.0)
+    bpy.context.view_layer.objects.active = antenna
+    bpy.ops.rs_elastic.apply_material_preset(preset='RUBBER')
+    antenna.rs_elastic.youngs_modulus = 4e6          # stiff rubber: sags and wobbles, stands
+    prepare(bpy, antenna, None, 0.05, num_modes=10)
+    antenna.rs_elastic.material_model = 'STVK'
+    if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
+        sys.exit("demo: simulating the antenna failed")
+
+    # 3. Secondary motion: a rod carried sideways from frame 1 to 12, then held.
+    prop = make_box(bpy, np, "Keyed Prop", (0.3, 0.3, 2.4), 7, pin_axis=2,
+                    location=(3.0, 0.0, -1.0))
+    prop.color = (0.3, 0.55, 0.85, 1.0)
+    bpy.context.view_layer.objects.active = prop
+    bpy.ops.rs_elastic.apply_material_preset(preset='RUBBER')
+    prop.rs_elastic.youngs_modulus = 6e6
+    prop.rs_elastic.damping_mass = 1.0
+    prepare(bpy, prop, None, 0.05, num_modes=10)
+    prop.keyframe_insert("location", frame=1)
+    prop.location.x = 5.5
+    prop.keyframe_insert("location", frame=12)
+    bpy.context.view_layer.objects.active = prop
+    if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
+        sys.exit("demo: simulating the prop failed")
+
+    for text, x in (("space-time edit", -4.5), ("simulated, gravity", 0.9), ("keyed prop", 4.3)):
+        add_label(bpy, text, (x, 0.0, -1.7), 0.35)
+    frame_label = add_label(bpy, "frame", (-6.8, 0.0, 3.8), 0.45, name="Frame Label")
+    stage(bpy, (-0.7, -15.0, 0.6), 33, TILE)
+    scene.frame_set(1)
+    bpy.ops.wm.save_mainfile()
+    contact_sheet(bpy, np, frame_label, output / "demo.png")
+
+
+def contact_sheet(bpy, np, frame_label, path):
+    """Render SHEET_FRAMES and tile them 3 × 2 into one picture."""
+    scene = bpy.context.scene
+    tiles = []
+    for frame in SHEET_FRAMES:
+        scene.frame_set(frame)
+        frame_label.data.body = f"frame {frame}"
+        scene.render.filepath = str(path.with_name(f".tile_{frame}.png"))
+        bpy.ops.render.render(write_still=True)
+        image = bpy.data.images.load(scene.render.filepath)
+        pixels = np.empty(image.size[0] * image.size[1] * 4, dtype=np.float32)
+        image.pixels.foreach_get(pixels)
+        tiles.append(pixels.reshape(image.size[1], image.size[0], 4))
+        bpy.data.images.remove(image)
+        os.remove(scene.render.filepath)
+    rows = [np.concatenate(tiles[i:i + 3], axis=1) for i in (3, 0)]   # images are bottom-up
+    sheet = np.concatenate(rows, axis=0)
+    image = bpy.data.images.new("Contact Sheet", sheet.shape[1], sheet.shape[0], alpha=True)
+    image.pixels.foreach_set(sheet.ravel())
+    image.filepath_raw = str(path)
+    image.file_format = 'PNG'
+    image.save()
+    bpy.data.images.remove(image)
+    print(f"demo: wrote {path}")
+
+
+# --- linear against RS ----------------------------------------------------------------------------
 
 def row_copy(bpy, obj, label, row):
     """A copy `row` rows up, with its own mesh so each row's preview key is its own."""
@@ -74,32 +203,36 @@ def row_copy(bpy, obj, label, row):
     return copy
 
 
-def add_label(bpy, text, location, size=0.45):
-    curve = bpy.data.curves.new(text, 'FONT')
-    curve.body = text
-    curve.size = size
-    curve.align_x = 'CENTER'
-    label = bpy.data.objects.new(text, curve)
-    label.location = location
-    label.rotation_euler = (1.5708, 0.0, 0.0)
-    bpy.context.scene.collection.objects.link(label)
-    return label
-
-
-def stage(bpy, output):
-    scene = bpy.context.scene
-    bpy.ops.object.camera_add(location=(0.0, -21.0, ROW_GAP), rotation=(1.5708, 0.0, 0.0))
-    scene.camera = bpy.context.active_object
-    scene.camera.data.lens = 32
-    scene.render.engine = 'BLENDER_WORKBENCH'
-    scene.display.shading.light = 'STUDIO'
-    scene.display.shading.color_type = 'OBJECT'
-    scene.display.shading.show_cavity = True
-    scene.render.resolution_x, scene.render.resolution_y = 1280, 720
-    scene.render.film_transparent = False
-    world = bpy.data.worlds.new("Demo") if scene.world is None else scene.world
-    scene.world = world
-    scene.render.filepath = str(output / "demo.png")
+def modes_picture(bpy, np, output):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(output / "modes.blend"))
+    bar = make_box(bpy, np, "Rubber Bar", (4.0, 0.5, 0.5), 9, location=(-4.5, 0.0, 0.0))
+    bpy.ops.mesh.primitive_monkey_add(size=2.0, location=(3.0, 0.0, 0.0))
+    suzanne = bpy.context.active_object
+    suzanne.name = "Suzanne"
+    bpy.ops.object.shade_smooth()
+    # Large amplitudes: the bar's linear tip displacement is about 4× its thickness.
+    for obj, edge, amplitude in ((bar, 0.03, 0.5), (suzanne, 0.05, 0.25)):
+        prepare(bpy, obj, 'RUBBER', edge)
+        obj.rs_elastic.preview_amplitude = amplitude
+    for obj, color in ((bar, (0.85, 0.35, 0.2, 1.0)), (suzanne, (0.3, 0.55, 0.85, 1.0))):
+        obj.color = color
+        obj.rs_elastic.preview_mode = 1
+        row_copy(bpy, obj, "rest", 2)
+        linear = row_copy(bpy, obj, "linear", 1)
+        for copy, method in ((linear, 'LINEAR'), (obj, 'RS')):
+            bpy.context.view_layer.objects.active = copy
+            copy.rs_elastic.preview_method = method
+            copy.rs_elastic.preview_enabled = True
+    for text, row in (("rest", 2), ("linear mode 1", 1), ("RS mode 1", 0)):
+        add_label(bpy, text, (-8.2, 0.0, row * ROW_GAP + 0.9))
+    for obj, x in ((bar, -2.5), (suzanne, 3.0)):
+        add_label(bpy, f"{obj.name}: {obj.rs_elastic.frequencies[0]:.2f} Hz", (x, 0.0, -2.4), 0.35)
+    stage(bpy, (0.0, -21.0, ROW_GAP), 32, (1280, 720))
+    bpy.context.scene.render.filepath = str(output / "modes.png")
+    bpy.ops.render.render(write_still=True)
+    bpy.ops.wm.save_mainfile()
+    print(f"demo: wrote {output / 'modes.png'}")
 
 
 def main():
@@ -111,32 +244,9 @@ def main():
     blender_session.start(args.zip)
     import bpy
     import numpy as np
-
-    bpy.ops.wm.read_homefile(use_empty=True)
-    bpy.ops.wm.save_as_mainfile(filepath=str(output / "demo.blend"))  # cache goes next to it
-    bar = make_bar(bpy, np)
-    suzanne = make_suzanne(bpy)
-    # Large amplitudes: the bar's linear tip displacement is about 4× its thickness.
-    prepare(bpy, bar, edge_length=0.03, amplitude=0.5)
-    prepare(bpy, suzanne, edge_length=0.05, amplitude=0.25)
-
-    for obj, color in ((bar, (0.85, 0.35, 0.2, 1.0)), (suzanne, (0.3, 0.55, 0.85, 1.0))):
-        obj.color = color
-        obj.rs_elastic.preview_mode = 1
-        rest = row_copy(bpy, obj, "rest", 2)
-        linear = row_copy(bpy, obj, "linear", 1)
-        for copy, method in ((linear, 'LINEAR'), (obj, 'RS')):
-            bpy.context.view_layer.objects.active = copy
-            copy.rs_elastic.preview_method = method
-            copy.rs_elastic.preview_enabled = True
-    for text, row in (("rest", 2), ("linear mode 1", 1), ("RS mode 1", 0)):
-        add_label(bpy, text, (-8.2, 0.0, row * ROW_GAP + 0.9))
-    for obj, x in ((bar, -2.5), (suzanne, 3.0)):
-        add_label(bpy, f"{obj.name}: {obj.rs_elastic.frequencies[0]:.2f} Hz", (x, 0.0, -2.4), 0.35)
-    stage(bpy, output)
-    bpy.ops.render.render(write_still=True)
-    bpy.ops.wm.save_mainfile()
-    print(f"demo: wrote {output / 'demo.blend'} and {output / 'demo.png'}")
+    modes_picture(bpy, np, output)
+    showcase(bpy, np, output)
+    print(f"demo: wrote {output / 'demo.blend'}, {output / 'demo.png'}, {output / 'modes.png'}")
 
 
 if __name__ == "__main__":

@@ -170,7 +170,8 @@ def test_static_sag_matches_euler_bernoulli():
     damped.run(240)                                       # critically damped: 1 s = 5 periods
     settled = -(damped.world_positions(X) - X)[tip, 2].mean()
     print(f"tip sag: static {1e3 * static:.3f} mm, damped run {1e3 * settled:.3f} mm, "
-          f"Euler-Bernoulli {1e3 * euler_bernoulli:.3f} mm: {100 * (static / euler_bernoulli - 1):+.2f} %")
+          f"Euler-Bernoulli {1e3 * euler_bernoulli:.3f} mm: "
+          f"{100 * (static / euler_bernoulli - 1):+.2f} %")
     assert abs(static / euler_bernoulli - 1.0) <= 0.05
     assert abs(settled / static - 1.0) <= 1e-3
 
@@ -325,7 +326,8 @@ def test_nonlinear_materials_stretch_less_when_hanging(soft_run):
                                   gravity=(9.81, 0.0, 0.0))
         sim.static_equilibrium()
         stretch[kind] = (sim.world_positions(body["X"]) - body["X"])[tip, 0].mean()
-    print("hanging tip extension: " + ", ".join(f"{k} {1e3 * v:.2f} mm" for k, v in stretch.items()))
+    print("hanging tip extension: "
+          + ", ".join(f"{k} {1e3 * v:.2f} mm" for k, v in stretch.items()))
     assert 0.0 < stretch["FUNG"] < stretch["STVK"] < stretch["LINEAR"]
     assert stretch["LINEAR"] > 0.05 * 0.2                       # large strain indeed
 
@@ -421,8 +423,8 @@ def test_accelerating_frame_lags_like_gravity_and_settles(bar):
     assert lag < 0.0
     assert abs(lag / expected - 1.0) < 0.01
     assert abs(tip_y(coasting.q[-1])) < 0.01 * abs(lag)
-    np.testing.assert_allclose(moved[-1] - pinned, np.broadcast_to([0.0, 8.0 * a, 0.0], pinned.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(moved[-1] - pinned,
+                               np.broadcast_to([0.0, 8.0 * a, 0.0], pinned.shape), atol=1e-12)
 
 
 def test_pinned_part_follows_keyed_rotation_and_the_rest_lags(bar):
@@ -513,7 +515,8 @@ def test_run_reports_progress_and_cancels(bar):
     calls = []
     trajectory = sim.run(3, callback=lambda step, total: calls.append((step, total)))
     assert calls == [(1, 3), (2, 3), (3, 3)]
-    assert trajectory.coords.shape == (4, 12) and trajectory.q.shape == (4, bar["deformer"].basis_size)
+    assert trajectory.coords.shape == (4, 12)
+    assert trajectory.q.shape == (4, bar["deformer"].basis_size)
     assert np.allclose(trajectory.times, np.arange(4) / 24.0)
     with pytest.raises(dynamics.SimulationCancelled) as cancelled:
         sim.run(5, should_cancel=lambda: len(calls) >= 5,

@@ -40,7 +40,7 @@ def test_material_derivatives_match_central_differences(material, scale):
     psi, grad, hess = material.evaluate(strain)
     fd_grad = central_gradient(lambda e: material.evaluate(e, 0)[0], strain, 1e-6)
     fd_hess = central_gradient(lambda e: material.evaluate(e, 1)[1].T, strain, 1e-6)
-    fd_hess = np.moveaxis(fd_hess, 0, 1)                       # (E, 6, 6): [e, i, k] = d g_i / d e_k
+    fd_hess = np.moveaxis(fd_hess, 0, 1)                  # (E, 6, 6): [e, i, k] = d g_i / d e_k
     g_err = np.abs(grad - fd_grad).max() / np.abs(grad).max()
     h_err = np.abs(hess - fd_hess).max() / np.abs(hess).max()
     print(f"{type(material).__name__} strain ~{scale}: gradient {g_err:.1e}, Hessian {h_err:.1e}")
