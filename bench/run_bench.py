@@ -422,6 +422,32 @@ def dynamics_table(rows, reference):
 CASES["dynamics"] = case_dynamics
 CASES["dynamics_reference"] = case_dynamics_reference
 
+def run_softbody(frames=120, cuts=20):
+    """Blender's own Soft Body on a bar of about the 10k-tet bar's node count (bench/softbody.py,
+    in its own process since it imports bpy)."""
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "softbody.py"), str(frames),
+                          str(cuts)], capture_output=True, text=True, cwd=ROOT)
+    if out.returncode != 0:
+        return dict(case="softbody", arg=str(cuts), error=(out.stderr.strip().splitlines() or ["?"])[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def softbody_table(softbody, dynamics):
+    """Markdown: Blender Soft Body per frame against an RS step at 20 modes with cubature."""
+    rs_row = next((r for r in dynamics if "error" not in r and str(r.get("modes")) == "20"), None)
+    lines = ["## Blender Soft Body against RS dynamics (same frames)", "",
+             "| solver | points | ms per frame |", "|---|---|---|"]
+    if "error" in softbody:
+        lines.append(f"| Soft Body | error: {softbody['error']} | |")
+    else:
+        lines.append(f"| Blender Soft Body (surface springs) | {softbody['vertices']:,} vertices "
+                     f"| {softbody['ms_per_frame']:.2f} |")
+    if rs_row is not None and "steps_per_second" in rs_row:
+        lines.append(f"| RS dynamics, 20 modes, cubature | {rs_row.get('tets', 0):,} tets "
+                     f"| {1000.0 / rs_row['steps_per_second']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def run_child(case, arg):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
                          capture_output=True, text=True, cwd=ROOT)
@@ -490,6 +516,9 @@ def main():
     results["dynamics_reference"] = run_child("dynamics_reference", "10k")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + dynamics_table(results["dynamics"], results["dynamics_reference"])
+    results["softbody"] = run_softbody()
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + softbody_table(results["softbody"], results["dynamics"])
     (output / "results.md").write_text(text)
     print(text)
 

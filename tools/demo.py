@@ -206,7 +206,8 @@ def row_copy(bpy, obj, label, row):
 def modes_picture(bpy, np, output):
     bpy.ops.wm.read_homefile(use_empty=True)
     bpy.ops.wm.save_as_mainfile(filepath=str(output / "modes.blend"))
-    bar = make_box(bpy, np, "Rubber Bar", (4.0, 0.5, 0.5), 9, location=(-4.5, 0.0, 0.0))
+    # Thinner in z than in y, so the first mode bends it up and down, towards no camera.
+    bar = make_box(bpy, np, "Rubber Bar", (4.0, 0.6, 0.4), 9, location=(-4.5, 0.0, 0.0))
     bpy.ops.mesh.primitive_monkey_add(size=2.0, location=(3.0, 0.0, 0.0))
     suzanne = bpy.context.active_object
     suzanne.name = "Suzanne"
