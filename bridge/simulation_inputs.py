@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import dynamics, fem, materials
-from . import rs_tools, scene, spacetime_inputs
+from . import scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
 

@@ -13,6 +13,21 @@ class RSElasticPanel:
         return obj is not None and obj.type == 'MESH'
 
 
+def draw_frame_range(layout, settings):
+    """The frame-range settings shared by space-time solves and simulations."""
+    layout.prop(settings, "use_scene_range")
+    if not settings.use_scene_range:
+        row = layout.row(align=True)
+        row.prop(settings, "frame_start")
+        row.prop(settings, "frame_end")
+
+
+def draw_bake_buttons(layout):
+    row = layout.row(align=True)
+    row.operator("rs_elastic.keep_take", icon='PINNED')
+    row.operator("rs_elastic.clear_bake", icon='TRASH')
+
+
 class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
     bl_label = "RS Elastic"
 

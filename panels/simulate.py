@@ -1,7 +1,7 @@
 """Simulation: material model, damping and the Simulate operator."""
 import bpy
 
-from .body import RSElasticPanel
+from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -17,16 +17,10 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
             layout.prop(settings, "fung_stiffening")
         layout.prop(settings, "damping_mass")
         layout.prop(settings, "damping_stiffness")
-        layout.prop(settings, "use_scene_range")
-        if not settings.use_scene_range:
-            row = layout.row(align=True)
-            row.prop(settings, "frame_start")
-            row.prop(settings, "frame_end")
+        draw_frame_range(layout, settings)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
-        row = layout.row(align=True)
-        row.operator("rs_elastic.keep_take", icon='PINNED')
-        row.operator("rs_elastic.clear_bake", icon='TRASH')
+        draw_bake_buttons(layout)
 
 
 CLASSES = (RS_ELASTIC_PT_simulate,)

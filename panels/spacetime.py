@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import bake
-from .body import RSElasticPanel
+from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
 
 class RS_ELASTIC_UL_handles(bpy.types.UIList):
@@ -41,11 +41,7 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             row.prop(handle, "weight")
 
         layout.use_property_split = True
-        layout.prop(settings, "use_scene_range")
-        if not settings.use_scene_range:
-            row = layout.row(align=True)
-            row.prop(settings, "frame_start")
-            row.prop(settings, "frame_end")
+        draw_frame_range(layout, settings)
         layout.prop(settings, "tightness")
         layout.prop(settings, "damping_mass")
         layout.prop(settings, "damping_stiffness")
@@ -57,9 +53,7 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
 
         layout.use_property_split = False
         layout.operator("rs_elastic.solve_spacetime", icon='PLAY')
-        row = layout.row(align=True)
-        row.operator("rs_elastic.keep_take", icon='PINNED')
-        row.operator("rs_elastic.clear_bake", icon='TRASH')
+        draw_bake_buttons(layout)
         frames = bake.bake_frames(obj)
         if frames:
             layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')

@@ -122,3 +122,13 @@ def closed_volume(obj, positions):
         for b, c in zip(positions[idx[1:-1]], positions[idx[2:]]):
             total += np.dot(a, np.cross(b, c)) / 6.0
     return total
+
+
+def preview_pose(obj, method, amplitude):
+    """Evaluated vertices of the mode preview with this method and amplitude (then turned off)."""
+    obj.rs_elastic.preview_method = method
+    obj.rs_elastic.preview_amplitude = amplitude
+    obj.rs_elastic.preview_enabled = True
+    pose = evaluated_vertices(obj)
+    obj.rs_elastic.preview_enabled = False
+    return pose

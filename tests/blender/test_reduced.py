@@ -1,21 +1,10 @@
 """Reduced RS in the installed extension: preview, cache stage, cancellation."""
-import threading
 import time
 
 import numpy as np
-import pytest
 import bpy
 
-from blender_helpers import diagonal, evaluated_vertices, make_bar, vertices
-
-
-def preview(obj, method, amplitude):
-    obj.rs_elastic.preview_method = method
-    obj.rs_elastic.preview_amplitude = amplitude
-    obj.rs_elastic.preview_enabled = True
-    pose = evaluated_vertices(obj)
-    obj.rs_elastic.preview_enabled = False
-    return pose
+from blender_helpers import diagonal, make_bar, preview_pose, vertices
 
 
 def test_reduced_preview_matches_full_rs_at_large_amplitude(ext):
@@ -28,7 +17,7 @@ def test_reduced_preview_matches_full_rs_at_large_amplitude(ext):
     rest = vertices(obj)
     for mode, amplitude in ((1, 0.3), (2, -0.3), (3, 0.2)):
         settings.preview_mode = mode
-        full, reduced = preview(obj, 'RS', amplitude), preview(obj, 'REDUCED', amplitude)
+        full, reduced = preview_pose(obj, 'RS', amplitude), preview_pose(obj, 'REDUCED', amplitude)
         error = np.linalg.norm(full - reduced, axis=1).max() / diagonal(rest)
         print(f"mode {mode}: reduced vs full RS {error:.2e} of the diagonal")
         assert error < 0.01

@@ -5,7 +5,7 @@ import bpy
 from scipy.spatial.transform import Rotation
 
 from blender_helpers import (closed_volume, diagonal, evaluated_vertices, fingerprint, make_bar,
-                             vertices)
+                             preview_pose, vertices)
 
 
 def prepared_bar(pin_end=True, cuts=7, edge_length=0.06, num_modes=4):
@@ -14,15 +14,6 @@ def prepared_bar(pin_end=True, cuts=7, edge_length=0.06, num_modes=4):
     obj.rs_elastic.num_modes = num_modes
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     return obj
-
-
-def preview_pose(obj, method, amplitude):
-    obj.rs_elastic.preview_method = method
-    obj.rs_elastic.preview_amplitude = amplitude
-    obj.rs_elastic.preview_enabled = True
-    pose = evaluated_vertices(obj)
-    obj.rs_elastic.preview_enabled = False
-    return pose
 
 
 def test_rs_preview_curls_the_bar_where_the_linear_one_stretches_it(ext):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import diagonal, evaluated_vertices, fingerprint, link_mesh, make_bar, vertices
+from blender_helpers import diagonal, evaluated_vertices, fingerprint, make_bar, vertices
 from test_spacetime import run_cli
 
 
