@@ -163,8 +163,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                             description="Largest number of solver iterations")
     use_take: BoolProperty(name="Edit the Take", default=False,
                            description="Use the stored take (a kept bake) as the input motion")
-    take_weight: FloatProperty(name="Take Weight", default=1.0, min=0.0, soft_max=100.0,
-                               description="How closely the edit follows the input take")
+    take_weight: FloatProperty(name="Take Weight", default=0.01, min=0.0, soft_max=1.0,
+                               precision=4,
+                               description="How closely the edit follows the input take, "
+                                           "relative to a handle: keep it small, so edits can "
+                                           "bend the take around them")
     solve_history: CollectionProperty(type=RSElasticValue)
 
     @property
