@@ -28,7 +28,7 @@ from .scene import InputError
 # How often each stage really ran in this process (the tests read these to prove cache reuse).
 stats = collections.Counter()
 
-_MEMORY = collections.OrderedDict()   # cache key -> TetBody or LinearModes
+_MEMORY = collections.OrderedDict()   # cache key -> TetBody, LinearModes or ReducedRS
 _MEMORY_LIMIT = 16
 
 
@@ -244,15 +244,23 @@ def _save_cached(inputs, stage, key, arrays, job):
         job.warn(f"Could not write the cache {path}: {exc}")
 
 
-def tet_stage(inputs, job):
-    """The tet mesh and embedding for these inputs: from memory, the disk cache, or fTetWild."""
-    key = inputs.tets_key
+def _cached_stage(inputs, stage, key, compute, job):
+    """A stage's value: from memory, else its valid cache file, else compute() (then saved)."""
     if key in _MEMORY:
         return _MEMORY[key]
-    arrays = _load_cached(inputs, "tets", key, job)
+    arrays = _load_cached(inputs, stage, key, job)
     if arrays is not None:
-        body = TetBody.from_arrays(arrays)
+        value = _from_arrays(stage, arrays)
     else:
+        value = compute()
+        _save_cached(inputs, stage, key, _to_arrays(stage, value), job)
+    _remember(key, value)
+    return value
+
+
+def tet_stage(inputs, job):
+    """The tet mesh and embedding for these inputs: from memory, the disk cache, or fTetWild."""
+    def compute():
         job.step(0.05, "Tetrahedralising with fTetWild")
         stats["tetrahedralize"] += 1
         try:
@@ -265,21 +273,14 @@ def tet_stage(inputs, job):
                 raise Cancelled() from None
             raise InputError(f"Tetrahedralisation of '{inputs.object_name}' failed: {exc}") from None
         job.step(0.45, "Embedding the mesh in the tets")
-        body = TetBody(X, T, embed.embed_points(X, T, inputs.base_vertices))
-        _save_cached(inputs, "tets", key, body.to_arrays(), job)
-    _remember(key, body)
-    return body
+        return TetBody(X, T, embed.embed_points(X, T, inputs.base_vertices))
+
+    return _cached_stage(inputs, "tets", inputs.tets_key, compute, job)
 
 
 def modes_stage(inputs, tet_body, job):
     """Linear modes for the material and pins: from memory, the disk cache, or eigsh."""
-    key = inputs.modes_key
-    if key in _MEMORY:
-        return _MEMORY[key]
-    arrays = _load_cached(inputs, "modes", key, job)
-    if arrays is not None:
-        result = _modes_from_arrays(arrays)
-    else:
+    def compute():
         pinned = None
         if inputs.pin_mask is not None:
             pinned = embed.pinned_nodes_from_vertices(tet_body.embedding, inputs.pin_mask)
@@ -292,23 +293,16 @@ def modes_stage(inputs, tet_body, job):
         job.step(0.65, f"Computing {inputs.num_modes} linear modes")
         stats["modes"] += 1
         try:
-            result = modes.linear_modes(K, masses, inputs.num_modes, pinned)
+            return modes.linear_modes(K, masses, inputs.num_modes, pinned)
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
-        _save_cached(inputs, "modes", key, _modes_to_arrays(result), job)
-    _remember(key, result)
-    return result
+
+    return _cached_stage(inputs, "modes", inputs.modes_key, compute, job)
 
 
 def reduced_stage(inputs, tet_body, linear_modes, job):
     """The reduced RS deformer: from memory, the disk cache, or basis + cubature training."""
-    key = inputs.reduced_key
-    if key in _MEMORY:
-        return _MEMORY[key]
-    arrays = _load_cached(inputs, "reduced", key, job)
-    if arrays is not None:
-        deformer = reduced.ReducedRS.from_arrays(arrays)
-    else:
+    def compute():
         X, T = tet_body.nodes, tet_body.tets
         pinned = linear_modes.pinned_nodes
         job.step(0.72, "Reduced RS: training poses")
@@ -320,9 +314,9 @@ def reduced_stage(inputs, tet_body, linear_modes, job):
             max_size=inputs.basis_size or None, max_tets=inputs.cubature_tets,
             tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
             progress=lambda f, message: job.step(0.72 + 0.27 * f, f"Reduced RS: {message}"))
-        _save_cached(inputs, "reduced", key, deformer.save_arrays(), job)
-    _remember(key, deformer)
-    return deformer
+        return deformer
+
+    return _cached_stage(inputs, "reduced", inputs.reduced_key, compute, job)
 
 
 def prepare(inputs, job):
