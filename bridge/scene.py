@@ -20,6 +20,15 @@ def require_mesh_object(obj):
     return obj
 
 
+def active_mesh_or_report(operator, context):
+    """The active mesh object, or None after reporting why not (for short operators)."""
+    try:
+        return require_mesh_object(context.active_object)
+    except InputError as exc:
+        operator.report({'ERROR'}, str(exc))
+        return None
+
+
 def base_vertices(obj):
     """(n, 3) float64 object-space positions of the mesh's own vertices (what shape keys move)."""
     mesh = obj.data

@@ -2,7 +2,6 @@
 import bpy
 
 from ..bridge import bake, scene
-from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
@@ -12,10 +11,8 @@ class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def execute(self, context):
-        try:
-            obj = scene.require_mesh_object(context.active_object)
-        except InputError as exc:
-            self.report({'ERROR'}, str(exc))
+        obj = scene.active_mesh_or_report(self, context)
+        if obj is None:
             return {'CANCELLED'}
         removed = bake.clear_bake(obj)
         if removed == 0:

@@ -2,7 +2,6 @@
 import bpy
 
 from ..bridge import bake, scene
-from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_keep_take(bpy.types.Operator):
@@ -12,10 +11,8 @@ class RS_ELASTIC_OT_keep_take(bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def execute(self, context):
-        try:
-            obj = scene.require_mesh_object(context.active_object)
-        except InputError as exc:
-            self.report({'ERROR'}, str(exc))
+        obj = scene.active_mesh_or_report(self, context)
+        if obj is None:
             return {'CANCELLED'}
         frames = bake.keep_bake_as_take(obj)
         if not frames:
