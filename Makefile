@@ -1,44 +1,69 @@
 # RS Elastic: build, test, demo and bench. Every target creates what it needs.
-PYTHON311 ?= python3.11
+#
+# Blender as a Python module (bpy from the package index) stands in for Blender. Blender 4.2 to 5.0
+# embed Python 3.11, 5.1 and later Python 3.13, so each tested Blender gets its own venv:
+#   .venv          the newest LTS (make test, demo, bench)
+#   .venv-bpy-X.Y  the older versions of `make test-matrix`
+# pinned by requirements/bpy-X.Y.txt.
+PYTHON311 ?= $(shell tools/find_python.sh 3.11)
+PYTHON313 ?= $(shell tools/find_python.sh 3.13)
+
+NEWEST    := 5.2
+MATRIX    := 4.2 4.5 5.0
 VENV      := .venv
 PY        := $(VENV)/bin/python
-EXT_TOOL   = $(VENV)/lib/python3.11/site-packages/bpy/5.0/scripts/addons_core/bl_pkg/cli/blender_ext.py
 VERSION   := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 LINUX_ZIP := dist/rs_elastic-$(VERSION)-linux_x64.zip
 SOURCES   := blender_manifest.toml $(wildcard *.py bridge/*.py operators/*.py panels/*.py solver/*.py)
 
-.PHONY: all venv deps wheels build validate test test-solver test-blender demo bench clean
+# The Python a Blender version embeds, and the interpreter found for it.
+python_version = $(if $(filter 4.% 5.0,$(1)),3.11,3.13)
+python_for     = $(PYTHON$(subst .,,$(call python_version,$(1))))
+
+.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix demo bench clean
 
 all: build
 
-$(VENV)/.stamp: requirements-dev.txt
-	@command -v $(PYTHON311) >/dev/null || { echo "make: $(PYTHON311) not found; install Python 3.11 or set PYTHON311=/path/to/python3.11"; exit 1; }
-	$(PYTHON311) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -r requirements-dev.txt
-	touch $@
+# $(1) venv folder, $(2) Blender version X.Y
+define make_venv
+	@test -n "$(call python_for,$(2))" || { echo "make: Python $(call python_version,$(2)) not found (Blender $(2) embeds it); install it (pyenv install $(call python_version,$(2))) or set PYTHON$(subst .,,$(call python_version,$(2)))=/path/to/python$(call python_version,$(2))"; exit 1; }
+	rm -rf $(1)
+	$(call python_for,$(2)) -m venv $(1)
+	$(1)/bin/python -m pip install --quiet --upgrade pip
+	$(1)/bin/python -m pip install --quiet -r requirements/bpy-$(2).txt
+	touch $(1)/.stamp
+endef
+
+$(VENV)/.stamp: requirements/bpy-$(NEWEST).txt
+	$(call make_venv,$(VENV),$(NEWEST))
+
+.venv-bpy-%/.stamp: requirements/bpy-%.txt
+	$(call make_venv,.venv-bpy-$*,$*)
 
 venv: $(VENV)/.stamp
 
 wheels: $(VENV)/.stamp
 	$(PY) tools/fetch_wheels.py
 
-# The solver tests run on the very wheels the linux-x64 package bundles.
+# The solver tests run on the very wheels the linux-x64 package bundles for this Python.
 .deps/.stamp: $(VENV)/.stamp blender_manifest.toml
-	$(PY) tools/fetch_wheels.py --platform linux-x64
 	rm -rf .deps
-	$(PY) -m pip install --quiet --no-deps --target .deps wheels/*manylinux*.whl
+	$(PY) -m pip install --quiet --no-deps --target .deps \
+	    $$($(PY) tools/fetch_wheels.py --platform linux-x64 --this-python --print)
 	touch $@
 
 deps: .deps/.stamp
 
 validate: wheels
-	$(PY) $(EXT_TOOL) validate .
+	$(PY) tools/ext_tool.py validate .
 
+# Blender's own tool validates the source, builds one zip per platform (each carries the wheels
+# of both Pythons) and validates every zip it built.
 build: wheels
 	rm -rf dist && mkdir -p dist
-	$(PY) $(EXT_TOOL) validate .
-	$(PY) $(EXT_TOOL) build --split-platforms --output-dir dist
+	$(PY) tools/ext_tool.py validate .
+	$(PY) tools/ext_tool.py build --split-platforms --output-dir dist
+	for zip in dist/*.zip; do $(PY) tools/ext_tool.py validate "$$zip" || exit 1; done
 	@ls -1 dist
 
 $(LINUX_ZIP): $(SOURCES)
@@ -52,6 +77,15 @@ test-blender: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) -m pytest -q tests/blender
 
 test: test-solver test-blender
+
+# The whole Blender suite on each older version, with the same zips (validated by that version's
+# own extension tool first).
+test-matrix: $(LINUX_ZIP) $(foreach v,$(MATRIX),.venv-bpy-$(v)/.stamp)
+	@for v in $(MATRIX); do \
+	    echo "== Blender $$v (bpy module, Python $$(.venv-bpy-$$v/bin/python -c 'import sys; print(sys.version.split()[0])'))"; \
+	    for zip in dist/*.zip; do .venv-bpy-$$v/bin/python tools/ext_tool.py validate "$$zip" || exit 1; done; \
+	    RS_ELASTIC_ZIP=$(LINUX_ZIP) .venv-bpy-$$v/bin/python -m pytest -q tests/blender || exit 1; \
+	done
 
 demo: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) tools/demo.py --output demo_output

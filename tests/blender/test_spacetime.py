@@ -164,7 +164,7 @@ import blender_session
 ext = blender_session.start(user_dir={user_dir!r})
 import bpy
 bpy.ops.wm.open_mainfile(filepath={blend!r})
-sys.exit(ext.bridge.cli.main({argv!r}))
+blender_session.exit_child(ext.bridge.cli.main({argv!r}))
 """
 
 
