@@ -9,12 +9,10 @@ into its working directory.
 
 Input hygiene: vertices no face uses are dropped before fTetWild (a loose vertex far away would
 set the bounding box that the edge length and envelope are fractions of; very far away it crashed
-fTetWild). fTetWild then sees the surface in a normalised frame, and the nodes are mapped back:
-turned to its principal axes (fTetWild is ~5x slower on a bar whose faces are not aligned with
-the coordinate axes), centred on its bounding box and scaled to a unit diagonal (fTetWild works
-in absolute coordinates: a body 1e7 m from the origin took minutes). The edge length and
-envelope stay the same in metres: the fractions are rescaled from the input's bounding-box
-diagonal to the normalised frame's.
+fTetWild), and the surface is moved to its bounding-box centre and scaled to a unit diagonal
+(fTetWild works in absolute coordinates: a body 1e7 m from the origin took minutes), then the
+nodes are mapped back. The relative settings are unchanged by this, as both are fractions of
+the diagonal.
 """
 
 import importlib.util
@@ -94,12 +92,11 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=600.0, pyth
     assert F.ndim == 2 and F.shape[1] == 3, f"F must be (M, 3) triangles, got shape {F.shape}"
     check_surface(V, F)
     V, F = _used_vertices(V, F)
-    to_unit, from_unit, diagonal = _normalisation(V)
-    ratio = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) / diagonal  # same metres
-    X, T = _run_tetwild(to_unit(V), F, edge_length_fac * ratio, epsilon * ratio, timeout,
-                        python, num_threads, should_cancel)
+    centre, diagonal = _normalisation(V)
+    X, T = _run_tetwild((V - centre) / diagonal, F, edge_length_fac, epsilon, timeout, python,
+                        num_threads, should_cancel)
     T = fem.orient_tets(X, T)  # in unit coordinates, where volumes are best resolved
-    return from_unit(X), T
+    return X * diagonal + centre, T
 
 
 def _used_vertices(V, F):
@@ -109,25 +106,9 @@ def _used_vertices(V, F):
 
 
 def _normalisation(V):
-    """Maps to and from fTetWild's frame, and the bounding-box diagonal there [m].
-
-    Frame: principal axes of the vertices (a proper rotation), origin at the bounding-box
-    centre in those axes, unit bounding-box diagonal. Both maps take and return (n, 3) arrays.
-    """
-    mean = V.mean(axis=0)
-    _, axes = np.linalg.eigh((V - mean).T @ (V - mean))
-    axes[:, 0] *= np.sign(np.linalg.det(axes))          # a rotation, so tets keep their sign
-    aligned = (V - mean) @ axes
-    lo, hi = aligned.min(axis=0), aligned.max(axis=0)
-    centre, diagonal = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-
-    def to_unit(P):
-        return ((P - mean) @ axes - centre) / diagonal
-
-    def from_unit(P):
-        return (P * diagonal + centre) @ axes.T + mean
-
-    return to_unit, from_unit, diagonal
+    """(centre (3,), diagonal) of V's bounding box: fTetWild gets (V - centre) / diagonal."""
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
 
 
 def _run_tetwild(V, F, edge_length_fac, epsilon, timeout, python, num_threads, should_cancel):
