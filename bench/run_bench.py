@@ -4,6 +4,7 @@ Each case runs in its own child process so its peak memory (max RSS) is its own.
 clock on this machine; compare ratios within one run only.
 
     python bench/run_bench.py --output bench_output [--quick]
+    python bench/run_bench.py --child pins box      # one case alone, its JSON row on stdout
 """
 import argparse
 import json
@@ -422,6 +423,49 @@ def dynamics_table(rows, reference):
 CASES["dynamics"] = case_dynamics
 CASES["dynamics_reference"] = case_dynamics_reference
 
+def case_pins(surface, meshes=5, edge=0.02):
+    """f1 / f_EB of the clamped 1 x 0.1 x 0.1 m cantilever (E 1e6, nu 0.3, rho 1000) on fresh
+    fTetWild meshes (edge 0.02 m), end face pinned by the old rule (tet nodes carrying weight
+    for the pinned render vertices) and the new one (``embed.pinned_nodes_from_surface``).
+    surface: "box" (8 vertices, 12 triangles) or "fine" (40 x 4 x 4 cells)."""
+    import igl
+    import numpy as np
+    from solver import embed, fem, meshgen, modes, tetmesh
+    cells = {"box": (1, 1, 1), "fine": (40, 4, 4)}[surface]
+    Xs, Ts = meshgen.box_tet_mesh((1.0, 0.1, 0.1), cells)
+    used, F = np.unique(igl.boundary_facets(Ts)[0], return_inverse=True)
+    V, F = Xs[used], F.reshape(-1, 3)
+    weights = (V[:, 0] < 1e-9).astype(np.float64)
+    f_eb = 1.8751041 ** 2 * np.sqrt(1e6 * 0.1 ** 4 / 12.0 / (1000.0 * 0.01)) / (2.0 * np.pi)
+    ratios = dict(old=[], new=[])
+    start = time.perf_counter()
+    for _ in range(meshes):
+        X, T = tetmesh.tetrahedralize(V, F, edge_length_fac=edge / np.linalg.norm([1, .1, .1]))
+        Phi = embed.embed_points(X, T, V)
+        K, m = fem.stiffness_matrix(X, T, 1e6, 0.3), fem.lumped_masses(X, T, 1000.0)
+        pins = dict(old=embed.pinned_nodes_from_vertices(Phi, weights >= 0.5),
+                    new=embed.pinned_nodes_from_surface(X, T, Phi, V, F, weights))
+        for rule, pinned in pins.items():
+            f1 = modes.linear_modes(K, m, 1, pinned, rest_positions=X).frequencies_hz[0]
+            ratios[rule].append(float(f1 / f_eb))
+    return dict(surface=surface, meshes=meshes, seconds=time.perf_counter() - start,
+                old_min=min(ratios["old"]), old_max=max(ratios["old"]),
+                new_min=min(ratios["new"]), new_max=max(ratios["new"]),
+                old=ratios["old"], new=ratios["new"])
+
+
+def pins_table(rows):
+    return table("Clamped cantilever f1 / f_EB over fresh fTetWild meshes: old pin rule (nodes "
+                 "of the pinned vertices) vs new (pinned faces clamp)", rows,
+                 [("surface", ("surface", "{}")), ("meshes", ("meshes", "{}")),
+                  ("old min", ("old_min", "{:.3f}")), ("old max", ("old_max", "{:.3f}")),
+                  ("new min", ("new_min", "{:.3f}")), ("new max", ("new_max", "{:.3f}")),
+                  ("s", ("seconds", "{:.1f}"))])
+
+
+CASES["pins"] = case_pins
+
+
 def run_softbody(frames=120, cuts=20):
     """Blender's own Soft Body on a bar of about the 10k-tet bar's node count (bench/softbody.py,
     in its own process since it imports bpy)."""
@@ -516,6 +560,9 @@ def main():
     results["dynamics_reference"] = run_child("dynamics_reference", "10k")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + dynamics_table(results["dynamics"], results["dynamics_reference"])
+    results["pins"] = [run_child("pins", surface) for surface in ("box", "fine")]
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + pins_table(results["pins"])
     results["softbody"] = run_softbody()
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + softbody_table(results["softbody"], results["dynamics"])

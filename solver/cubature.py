@@ -3,7 +3,9 @@
 A cubature replaces a sum over all E tets by a weighted sum over a few, chosen so that it
 reproduces the full sum on training poses. ``greedy_nnls`` is the generic greedy non-negative
 least-squares selection (usable for any per-element quantity, e.g. energy cubature);
-``train_reduced_rs_cubature`` applies it to the reduced RS fit q(z) = sum_e P_e vec(b_e(y_e)).
+``reduced.train_reduced_rs_cubature`` applies it to the reduced RS fit
+q(z) = sum_e P_e vec(b_e(y_e)); ``training_poses`` gives the poses every cubature is trained
+on. This module depends on ``rs`` only, and ``reduced`` builds on it.
 
 Choices written down here:
 
@@ -21,7 +23,7 @@ import numpy as np
 import scipy.linalg
 from scipy.optimize import nnls
 
-from . import reduced, rs
+from . import rs
 
 DEG = np.pi / 180.0
 
@@ -52,7 +54,7 @@ def training_poses(num_modes, eigenvalues, count, rng, max_rotation=120.0 * DEG,
     m = int(num_modes)
     count = int(count)
     modal_rs = None if modal_rs is None else np.asarray(modal_rs)[:, :, :m]
-    per_unit = np.ones(m) if modal_rs is None else reduced.max_mode_rotations(modal_rs)
+    per_unit = np.ones(m) if modal_rs is None else rs.max_mode_rotations(modal_rs)
     per_unit = np.maximum(per_unit, 1e-300)
     if eigenvalues is None:
         falloff = np.ones(m)
@@ -211,72 +213,3 @@ def _least_squares(A, b):
     """argmin |A x - b| for A (k, p) of full column rank, by Householder QR."""
     Q, R = scipy.linalg.qr(A, mode="economic")
     return scipy.linalg.solve_triangular(R, Q.T @ b)
-
-
-# ---------------------------------------------------------------------------------------------
-# Reduced RS cubature
-
-def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
-                              candidates=400, projection=None, progress=None):
-    """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``reduced.ReducedRS`` uses it.
-
-    ReducedRS integrates the linear part of the RS map exactly, so the cubature fits the
-    nonlinear remainder r_e(y) = b_e(y) - [omega_e]x - eps_e:
-    targets h_t = g_t - A z_t (g_t = exact all-tet q(z_t), A = ``linear_map``) and candidate
-    columns a_e = [P_e vec(r_e(y_e(z_t)))]_t, both divided per pose by |g_t| so that poses of
-    any size count alike relative to their full q.
-
-    X (N, 3), T (E, 4): the tet mesh; modal_rs (E, 9, m); B (3N, rB) the basis; recon: the
-    body's ``rs.PoissonReconstruction``; poses: Z (F, m) training modal coordinates (see
-    ``training_poses``); projection: an existing ``reduced.ReducedProjection`` for B.
-    Columns are computed only for the ``candidates`` random tets scored at each pick
-    (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
-    progress(fraction, message): optional, see ``greedy_nnls``.
-
-    Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
-    pick), ``relative_residual`` (final), ``poses``, ``projection`` (the ReducedProjection).
-    """
-    Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    modal_rs = np.asarray(modal_rs, dtype=np.float64)
-    if projection is None:
-        projection = reduced.ReducedProjection(X, T, B, recon)
-    if progress is not None:
-        progress(0.0, "exact reduced fit of the training poses")
-    g = exact_reduced_q(projection, modal_rs, Z)                          # (F, rB)
-    scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
-    remainder = g - Z @ projection.linear_map(modal_rs).T
-    target = (remainder / scale[:, None]).reshape(-1)                     # row = F-major (t, r)
-
-    def columns(tets):
-        return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
-
-    inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
-    tets, weights, history = greedy_nnls(columns, target, tol=tol, max_picks=max_tets,
-                                         candidates=candidates, rng=rng, num_columns=len(T),
-                                         progress=inner)
-    info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
-    return tets, weights, info
-
-
-def exact_reduced_q(projection, modal_rs, Z, chunk=4):
-    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory)."""
-    out = np.empty((len(Z), projection.basis_size))
-    n_tets = modal_rs.shape[0]
-    for start in range(0, len(Z), chunk):
-        Zc = Z[start:start + chunk]
-        y = np.einsum("ekm,fm->fek", modal_rs, Zc).reshape(-1, 9)
-        out[start:start + chunk] = projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets,
-                                                                               3, 3))
-    return out
-
-
-def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
-    """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
-    tets = np.asarray(tets, dtype=np.int64)
-    P = projection.tet_projections(tets)                                  # (k, rB, 9)
-    y = (modal_rs[tets].reshape(-1, Z.shape[1]) @ Z.T).reshape(len(tets), 9, len(Z))
-    y = y.transpose(0, 2, 1).reshape(-1, 9)
-    r = (reduced.fast_targets(y) - y @ reduced.LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
-    cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)
-    cols /= scale[None, :, None]
-    return cols.reshape(len(tets), -1).T

@@ -50,6 +50,50 @@ def pinned_nodes_from_vertices(Phi, vertex_mask):
     return np.unique(rows.indices[rows.data != 0.0]).astype(np.int64)
 
 
+# How much nearer the whole render surface a tet-surface node may be than the pinned faces and
+# still be pinned, as a fraction of the render mesh's bounding-box diagonal. fTetWild puts the
+# tet surface anywhere within its envelope (default 1e-3 of the diagonal) of the render surface,
+# so a node meant to lie on a pinned face's rim can sit up to one envelope along the unpinned
+# neighbour face: it is then an envelope nearer to that face than to the pinned one. Twice the
+# default envelope pins those rim nodes, and spreads the pin at most that far onto neighbours.
+PIN_TOLERANCE = 2e-3
+
+
+def pinned_nodes_from_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5,
+                              tolerance=PIN_TOLERANCE):
+    """-> (p,) int64 sorted unique tet-node indices to hold fixed.
+    X (N,3) tet nodes, T (E,4) tets, Phi (n,N) csr embedding of the render vertices,
+    vertices (n,3) render-mesh vertices in the same space as X, triangles (m,3) int render triangles,
+    weights (n,) pin weights in [0,1].
+
+    Rule: a render vertex is pinned when its weight >= threshold; a render face is pinned when
+    all its vertices are pinned. The pinned tet nodes are
+    (a) every node that carries weight for a pinned render vertex (``pinned_nodes_from_vertices``),
+        so the pinned render vertices hold exactly, and
+    (b) every node on the tet mesh's boundary whose distance to the pinned faces is at most its
+        distance to the whole render surface plus ``tolerance`` x the render mesh's bounding-box
+        diagonal (see PIN_TOLERANCE): the nodes whose nearest part of the surface is painted.
+    Interior nodes are never added by (b), so nodes behind a pinned face stay free. Distances are
+    Euclidean in the given space, so the rule does not depend on the body's orientation or scale.
+    """
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    pinned_vertex = np.asarray(weights, dtype=np.float64) >= threshold
+    by_vertex = pinned_nodes_from_vertices(Phi, pinned_vertex)
+    pinned_faces = triangles[pinned_vertex[triangles].all(axis=1)]
+    if len(pinned_faces) == 0:
+        return by_vertex
+    boundary = np.unique(igl.boundary_facets(np.ascontiguousarray(T, dtype=np.int64))[0])
+    points = X[boundary]
+    to_pinned = np.sqrt(igl.point_mesh_squared_distance(points, vertices, pinned_faces)[0])
+    to_surface = np.sqrt(igl.point_mesh_squared_distance(points, vertices, triangles)[0])
+    used = vertices[np.unique(triangles)]
+    slack = tolerance * np.linalg.norm(used.max(axis=0) - used.min(axis=0))
+    by_face = boundary[to_pinned <= to_surface + slack]
+    return np.union1d(by_vertex, by_face).astype(np.int64)
+
+
 def _containing_tets(X, T, P):
     """(M,) index of a tet containing each point, -1 where none does."""
     tree = igl.AABB()

@@ -12,6 +12,17 @@ eigenvalue, so the shift scales with the problem's units and mesh size. The comp
 cleaned with a Rayleigh-Ritz step, which makes W^T M W = I and W^T K W = diag(lambda) hold to
 round-off even for the repeated eigenvalues of symmetric bodies. Small problems (few DOFs) use a
 dense generalized eigensolver instead, where ARPACK is inefficient or not applicable.
+
+Determinism: an eigenvector is only defined up to its sign, and inside a cluster of repeated
+eigenvalues (symmetric bodies) up to any rotation of the cluster's basis; ARPACK's default start
+vector is random. Both solvers therefore end in ``canonical_basis``: ARPACK starts from a fixed
+smooth field, a few extra eigenpairs are computed so no cluster is cut at the end of the list,
+and each cluster's basis is replaced by the Gram-Schmidt (in M) of the M-projections of fixed,
+asymmetric test fields of the rest positions (``test_fields``), which also fixes every sign.
+The test fields are functions of the rest positions normalised by their bounding box, so the
+result does not depend on the node numbering, the position or the scale of the body. Without
+rest positions the fields are functions of the node index: still deterministic, but then a
+renumbering of the nodes may flip signs.
 """
 
 from dataclasses import dataclass
@@ -25,6 +36,9 @@ from scipy.sparse.csgraph import connected_components
 NUM_RIGID = 6
 SHIFT_FRACTION = 1e-6
 DENSE_LIMIT = 600  # free DOFs up to which the dense solver is used
+CLUSTER_RTOL = 1e-8  # eigenvalues this close (relative) form one cluster of repeated values
+EXTRA_PAIRS = 4      # eigenpairs computed beyond the request, so a cluster is not cut in two
+NUM_TEST_FIELDS = 16  # fixed test fields that orient the modes (more if a cluster is larger)
 
 
 @dataclass
@@ -73,11 +87,13 @@ def count_near_zero(eigenvalues, rel_tol=1e-6):
     return int(np.sum(np.abs(ev) <= rel_tol * np.abs(ev).max()))
 
 
-def linear_modes(K, masses, num_modes, pinned_nodes=None):
+def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None):
     """Lowest ``num_modes`` deformation modes of (K, diag(masses) kron I3).
 
     K: (3N, 3N) sparse symmetric stiffness [N/m]; masses: (N,) lumped node masses [kg];
-    pinned_nodes: optional int array of node indices held fixed. Without pins the body is free
+    pinned_nodes: optional int array of node indices held fixed; rest_positions: optional
+    (N, 3) rest positions X [m] that orient the modes (signs, bases of repeated eigenvalues)
+    independently of the node numbering (see the module docstring). Without pins the body is free
     and its six rigid motions are skipped. With pins nothing is skipped: pins that do not stop
     every rigid motion (one node, or nodes on one line) leave near-zero modes in the result.
     Returns ``LinearModes`` in ascending order.
@@ -108,10 +124,68 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None):
                          f"({free_nodes.sum()} free nodes); use fewer modes or a finer mesh")
 
     K_free = K[free_dofs][:, free_dofs]
-    vals, vecs = _lowest_eigenpairs(K_free, np.repeat(masses, 3)[free_dofs], num_modes + n_rigid)
+    m_free = np.repeat(masses, 3)[free_dofs]
+    fields = test_fields(rest_positions, n_nodes)[free_dofs]
+    wanted = num_modes + n_rigid
+    k = min(wanted + EXTRA_PAIRS, int(free_dofs.sum()) - 1)
+    vals, vecs = _lowest_eigenpairs(K_free, m_free, k, start=fields[:, 0])
+    vals, vecs = canonical_basis(vals, vecs, m_free, fields)
     W = np.zeros((3 * n_nodes, num_modes))
-    W[free_dofs] = vecs[:, n_rigid:]
-    return LinearModes(eigenvalues=vals[n_rigid:], vectors=W, pinned_nodes=pinned)
+    W[free_dofs] = vecs[:, n_rigid:wanted]
+    return LinearModes(eigenvalues=vals[n_rigid:wanted], vectors=W, pinned_nodes=pinned)
+
+
+def test_fields(rest_positions, n_nodes, count=NUM_TEST_FIELDS):
+    """(3N, count) fixed smooth displacement fields with no symmetry, node-major.
+
+    Field j at node x: sin(2 pi k_j . xh + phase_jc) for component c, where xh is the rest
+    position centred on its bounding box and divided by the box diagonal (so the fields do not
+    depend on translation or scale), and k_j, phase_jc are fixed irrational-ish numbers (golden
+    ratio sequence) so that no reflection or rotation of a symmetric body maps a field onto
+    itself. Without rest positions xh is built from the node index instead.
+    """
+    if rest_positions is None:
+        t = (np.arange(n_nodes, dtype=np.float64) + 0.5) / n_nodes
+        xh = np.stack([t, t * t, np.sqrt(t)], axis=1)
+    else:
+        X = np.asarray(rest_positions, dtype=np.float64).reshape(n_nodes, 3)
+        lo, hi = X.min(axis=0), X.max(axis=0)
+        xh = (X - 0.5 * (lo + hi)) / max(float(np.linalg.norm(hi - lo)), np.finfo(float).tiny)
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    seq = np.mod(golden * np.arange(1, 1 + 6 * count), 1.0).reshape(count, 6)
+    wave = 0.7 + 1.6 * seq[:, :3] * (1.0 + np.arange(count)[:, None] / 4.0)  # (count, 3) cycles
+    phase = 2.0 * np.pi * seq[:, 3:]                                        # (count, 3)
+    arg = 2.0 * np.pi * (xh @ wave.T)                                       # (N, count)
+    fields = np.sin(arg[:, None, :] + phase.T[None, :, :])                  # (N, 3, count)
+    return fields.reshape(3 * n_nodes, count)
+
+
+def canonical_basis(vals, vecs, m, fields, rtol=CLUSTER_RTOL):
+    """Eigenpairs with every sign and every repeated-eigenvalue basis fixed by ``fields``.
+
+    vals: (k,) ascending; vecs: (n, k) M-orthonormal (M = diag(m)); fields: (n, f) test fields.
+    Eigenvalues closer than rtol * max(|lambda|, 1e-6 max|lambda|) form a cluster. In each
+    cluster (a single mode too) the basis becomes the Gram-Schmidt in M of the projections of
+    the test fields onto the cluster's span, taking at each step the field with the largest
+    remaining projection (pivoted QR): the result depends only on the span, not on the basis
+    the eigensolver happened to return. The eigenvalues are kept (a cluster's spread is below
+    rtol, so W^T K W stays diagonal to that accuracy). Returns (vals, vecs) in the same order.
+    """
+    vals, vecs = np.array(vals, dtype=np.float64), np.array(vecs, dtype=np.float64)
+    scale = np.abs(vals).max() if len(vals) else 0.0
+    tol = rtol * np.maximum(np.abs(vals[1:]), 1e-6 * scale)
+    starts = np.flatnonzero(np.r_[True, np.diff(vals) > tol])
+    ends = np.r_[starts[1:], len(vals)]
+    proj = vecs.T @ (m[:, None] * fields)                   # (k, f) M-projections
+    for a, b in zip(starts, ends):
+        C = proj[a:b]
+        if C.shape[1] < b - a:
+            raise ValueError(f"a cluster of {b - a} repeated eigenvalues exceeds the "
+                             f"{C.shape[1]} test fields")
+        Q, R, _ = scipy.linalg.qr(C, pivoting=True, mode="economic")
+        Q = Q * np.where(np.diag(R) < 0.0, -1.0, 1.0)[None, :]  # positive projections
+        vecs[:, a:b] = vecs[:, a:b] @ Q
+    return vals, vecs
 
 
 def _check_pins(pinned_nodes, n_nodes):
@@ -147,8 +221,11 @@ def _check_connectivity(K, pinned):
                          "vertex and would float freely; pin each part or join them")
 
 
-def _lowest_eigenpairs(K, m, k):
-    """k lowest eigenpairs of K v = lambda diag(m) v; values ascending, vectors M-orthonormal."""
+def _lowest_eigenpairs(K, m, k, start):
+    """k lowest eigenpairs of K v = lambda diag(m) v; values ascending, vectors M-orthonormal.
+
+    start: (n,) ARPACK's start vector (fixed, so the run is reproducible).
+    """
     if K.shape[0] <= DENSE_LIMIT:
         s = 1.0 / np.sqrt(m)  # symmetric scaling turns the problem into a standard one
         vals, vecs = scipy.linalg.eigh(s[:, None] * K.toarray() * s[None, :],
@@ -162,7 +239,7 @@ def _lowest_eigenpairs(K, m, k):
     lu = spla.splu((K - sigma * M).tocsc(), permc_spec="MMD_AT_PLUS_A",
                    options={"SymmetricMode": True})
     op_inv = spla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
-    _, vecs = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op_inv)
+    _, vecs = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op_inv, v0=start)
     return _rayleigh_ritz(K, m, vecs)
 
 

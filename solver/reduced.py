@@ -19,7 +19,8 @@ unit q]. With B mass-orthonormal (B^T M B = I), |q| is the mass-weighted RMS nor
 sqrt(total mass), which makes errors in q meaningful.
 
 Pipeline: ``prepare_reduced_rs`` does everything (training poses, basis, cubature);
-``second_order_basis`` and ``cubature.train_reduced_rs_cubature`` are its steps.
+``second_order_basis`` and ``train_reduced_rs_cubature`` (on ``cubature.greedy_nnls``) are
+its steps.
 ``LinearDeformer`` has the same interface for plain linear modal motion (q = z, B = W).
 """
 
@@ -29,16 +30,11 @@ import time
 import numpy as np
 import scipy.linalg
 
-from . import fem, rs
+from . import cubature, fem, rs
 
 
 # ---------------------------------------------------------------------------------------------
 # Basis: linear modes plus second-order terms of the RS map
-
-def max_mode_rotations(modal_rs):
-    """(m,) largest rotation |omega_e| over tets per unit of each modal coordinate [rad]."""
-    return np.linalg.norm(np.asarray(modal_rs)[:, :3, :], axis=1).max(axis=0)
-
 
 def second_order_targets(modal_rs, i, j):
     """d^2 b / dz_i dz_j at rest, (E, 3, 3) (SPEC section 4).
@@ -172,7 +168,7 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     displacement); keep None solves them all.
     """
     num_modes = modal_rs.shape[2]
-    amplitude = REFERENCE_ANGLE / np.maximum(max_mode_rotations(modal_rs), 1e-300)
+    amplitude = REFERENCE_ANGLE / np.maximum(rs.max_mode_rotations(modal_rs), 1e-300)
     terms = [(i, j, None) for j in range(num_modes) for i in range(j + 1)]
     terms += [(i, i, k) for k in range(3, int(order) + 1) for i in range(num_modes)]
     fields = _mode_fields(modal_rs)
@@ -239,9 +235,13 @@ def _append_snapshot_modes(basis, snapshots, m_diag, count, drop_tol):
     values, vectors = np.linalg.eigh(0.5 * (gram + gram.T))
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
-    if values[0] <= 0.0:
+    # Directions are kept relative to the snapshots' own energy, not to the leading leftover:
+    # when the basis already spans every free DOF (tiny meshes) the leftover is round-off,
+    # whose directions would make B^T L B singular.
+    energy = float(np.einsum("ik,i,ik->", snapshots, m_diag, snapshots))
+    if values[0] <= drop_tol ** 2 * energy:
         return basis
-    count = min(count, int(np.sum(values > drop_tol ** 2 * values[0])))   # energies: tol^2
+    count = min(count, int(np.sum(values > drop_tol ** 2 * energy)))      # energies: tol^2
     modes = residual @ (vectors[:, :count] / np.sqrt(values[:count]))
     # Re-orthonormalise (round-off of the Gram route) against the basis and each other.
     modes -= basis @ (basis.T @ (m_diag[:, None] * modes))
@@ -333,6 +333,9 @@ def fast_targets(y, jacobian=False):
 # ---------------------------------------------------------------------------------------------
 # Projections P_e and the exact reduced fit
 
+DEPENDENT_BASIS = 1e-12   # smallest / largest eigenvalue of B^T L B below which B is dependent
+
+
 class ReducedProjection:
     """The reduced least-squares fit q = (B^T L B)^-1 B^T G^T V vec(b) for a basis B.
 
@@ -351,7 +354,13 @@ class ReducedProjection:
         B3 = self.basis.reshape(self.num_nodes, 3, -1)
         # B^T L B = sum over coordinates of B_c^T L_s B_c (L = L_s kron I3).
         gram = sum(B3[:, c, :].T @ (recon.laplacian @ B3[:, c, :]) for c in range(3))
-        self.gram_factor = scipy.linalg.cho_factor(0.5 * (gram + gram.T))
+        gram = 0.5 * (gram + gram.T)
+        extremes = scipy.linalg.eigvalsh(gram)[[0, -1]] if len(gram) else np.ones(2)
+        if not extremes[0] > DEPENDENT_BASIS * extremes[1]:   # also catches NaN
+            raise ValueError(f"the reduced basis ({self.basis.shape[1]} vectors) is not "
+                             "independent on this mesh's free nodes; use fewer modes or a "
+                             "finer mesh")
+        self.gram_factor = scipy.linalg.cho_factor(gram)
         # B (B^T L B)^-1 (3N, rB): P_e and the exact fit then need no per-call solve.
         self.solved_basis = scipy.linalg.cho_solve(self.gram_factor, self.basis.T).T
         self._gradients = fem.shape_gradients(self.X, self.T)              # (E, 4, 3)
@@ -378,17 +387,20 @@ class ReducedProjection:
         several poses the sparse product handles all of them at once. b may also be (.., E, 9).
         """
         b = np.asarray(b, dtype=np.float64)
+        single = b.size == 9 * len(self.T)
+        q = self._exact_q_batch(b.reshape(-1, len(self.T), 3, 3))
+        return q[0] if single else q
+
+    def _exact_q_batch(self, b):
+        """(F, rB) fits of F poses' targets b (F, E, 3, 3), F >= 1 (``exact_q``)."""
         n_tets = len(self.T)
-        single = b.size == 9 * n_tets
-        b = b.reshape(-1, n_tets, 3, 3)
         frames = len(b)
         weighted = self.recon.volumes[None, :, None, None] * b                # (F, E, 3, 3)
         # column (f, i) holds b[f, :, i, :] flattened tet-major: the rhs of coordinate i.
         stacked = weighted.transpose(1, 3, 0, 2).reshape(3 * n_tets, 3 * frames)
         rhs = np.asarray(self.recon.gradient.T @ stacked)                      # (N, 3F)
         rhs = rhs.reshape(self.num_nodes, frames, 3).transpose(1, 0, 2).reshape(frames, -1)
-        q = rhs @ self.solved_basis                                             # (F, rB)
-        return q[0] if single else q
+        return rhs @ self.solved_basis                                          # (F, rB)
 
     def linear_map(self, modal_rs):
         """(rB, m) exact reduced coordinates of the linear targets [omega^i]x + eps^i per mode.
@@ -398,7 +410,7 @@ class ReducedProjection:
         """
         modal_rs = np.asarray(modal_rs, dtype=np.float64)
         linear = np.einsum("ij,ejm->mei", LINEAR_TARGET, modal_rs)               # (m, E, 9)
-        return self.exact_q(linear).T
+        return self._exact_q_batch(linear.reshape(len(linear), -1, 3, 3)).T  # also for m = 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -705,6 +717,75 @@ def _apply_rows(rows, q):
 
 
 # ---------------------------------------------------------------------------------------------
+# Reduced RS cubature
+
+def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
+                              candidates=400, projection=None, progress=None):
+    """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``ReducedRS`` uses it.
+
+    ReducedRS integrates the linear part of the RS map exactly, so the cubature fits the
+    nonlinear remainder r_e(y) = b_e(y) - [omega_e]x - eps_e:
+    targets h_t = g_t - A z_t (g_t = exact all-tet q(z_t), A = ``linear_map``) and candidate
+    columns a_e = [P_e vec(r_e(y_e(z_t)))]_t, both divided per pose by |g_t| so that poses of
+    any size count alike relative to their full q.
+
+    X (N, 3), T (E, 4): the tet mesh; modal_rs (E, 9, m); B (3N, rB) the basis; recon: the
+    body's ``rs.PoissonReconstruction``; poses: Z (F, m) training modal coordinates (see
+    ``cubature.training_poses``); projection: an existing ``ReducedProjection`` for B.
+    Columns are computed only for the ``candidates`` random tets scored at each pick
+    (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
+    progress(fraction, message): optional, see ``greedy_nnls``.
+
+    Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
+    pick), ``relative_residual`` (final), ``poses``, ``projection`` (the ReducedProjection).
+    """
+    Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+    modal_rs = np.asarray(modal_rs, dtype=np.float64)
+    if projection is None:
+        projection = ReducedProjection(X, T, B, recon)
+    if progress is not None:
+        progress(0.0, "exact reduced fit of the training poses")
+    g = exact_reduced_q(projection, modal_rs, Z)                          # (F, rB)
+    scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+    remainder = g - Z @ projection.linear_map(modal_rs).T
+    target = (remainder / scale[:, None]).reshape(-1)                     # row = F-major (t, r)
+
+    def columns(tets):
+        return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
+
+    inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
+    tets, weights, history = cubature.greedy_nnls(
+        columns, target, tol=tol, max_picks=max_tets, candidates=candidates, rng=rng,
+        num_columns=len(T), progress=inner)
+    info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
+    return tets, weights, info
+
+
+def exact_reduced_q(projection, modal_rs, Z, chunk=4):
+    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory)."""
+    out = np.empty((len(Z), projection.basis_size))
+    n_tets = modal_rs.shape[0]
+    for start in range(0, len(Z), chunk):
+        Zc = Z[start:start + chunk]
+        y = np.einsum("ekm,fm->fek", modal_rs, Zc).reshape(-1, 9)
+        out[start:start + chunk] = projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets,
+                                                                               3, 3))
+    return out
+
+
+def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
+    """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
+    tets = np.asarray(tets, dtype=np.int64)
+    P = projection.tet_projections(tets)                                  # (k, rB, 9)
+    y = (modal_rs[tets].reshape(-1, Z.shape[1]) @ Z.T).reshape(len(tets), 9, len(Z))
+    y = y.transpose(0, 2, 1).reshape(-1, 9)
+    r = (fast_targets(y) - y @ LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
+    cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)
+    cols /= scale[None, :, None]
+    return cols.reshape(len(tets), -1).T
+
+
+# ---------------------------------------------------------------------------------------------
 # Everything at once
 
 def default_basis_size(num_modes, cap=160):
@@ -724,7 +805,7 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     Steps (progress fractions in brackets): training poses (``cubature.training_poses``, up
     to 120 deg); full RS snapshots of ``num_snapshots`` of them [0, 0.2]; the basis
     (``second_order_basis`` with snapshot enrichment, ``max_size`` columns) [0.2, 0.5]; the
-    cubature on ``num_poses`` other poses (``cubature.train_reduced_rs_cubature``) [0.5, 1].
+    cubature on ``num_poses`` other poses (``train_reduced_rs_cubature``) [0.5, 1].
     max_size None: ``default_basis_size(m)``. Measured on a pinned 4:1:1 bar with 20 modes and
     held-out poses up to 90 deg (strain <= 100 %): rB = 120 leaves up to about 1 % of the
     bounding-box diagonal, rB = 160 about 0.75 %; 150 cubature tets add little to that (60
@@ -738,8 +819,6 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     info: ``seconds`` per stage, ``history``/``relative_residual`` of the cubature fit, and the
     training poses ``snapshot_poses``, ``cubature_poses``.
     """
-    from . import cubature                                      # cubature builds on this module
-
     if modal_rs is None:
         modal_rs = rs.linear_rs(rs.rs_operator(X, T), W)
     rng = np.random.default_rng(seed)
@@ -763,7 +842,7 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     seconds["basis"] = time.perf_counter() - start
     start = time.perf_counter()
     poses = cubature.training_poses(num_modes, eigenvalues, num_poses, rng, modal_rs=modal_rs)
-    tets, weights, fit = cubature.train_reduced_rs_cubature(
+    tets, weights, fit = train_reduced_rs_cubature(
         X, T, modal_rs, B, recon, poses, max_tets=max_tets, tol=tol, rng=rng,
         candidates=candidates, progress=stage(0.5, 1.0))
     deformer = ReducedRS.build(X, T, modal_rs, B, recon, tets, weights,

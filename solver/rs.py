@@ -423,3 +423,8 @@ class PoissonReconstruction:
     def reconstruct(self, y, mean_displacement=None):
         """Displacement u (N, 3) [m] of RS coordinates y (E, 9): solve(rs_target(y))."""
         return self.solve(rs_target(y), mean_displacement)
+
+
+def max_mode_rotations(modal_rs):
+    """(m,) largest rotation |omega_e| over tets per unit of each modal coordinate [rad]."""
+    return np.linalg.norm(np.asarray(modal_rs)[:, :3, :], axis=1).max(axis=0)

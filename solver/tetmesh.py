@@ -6,6 +6,13 @@ inside Blender would take Blender down with it, so ``tetrahedralize`` runs
 exit, timeout, missing output) into a ``TetMeshError`` the caller can show to the user.
 The worker runs in a temporary directory because fTetWild drops a ``__tracked_surface.stl``
 into its working directory.
+
+Input hygiene: vertices no face uses are dropped before fTetWild (a loose vertex far away would
+set the bounding box that the edge length and envelope are fractions of; very far away it crashed
+fTetWild), and the surface is moved to its bounding-box centre and scaled to a unit diagonal
+(fTetWild works in absolute coordinates: a body 1e7 m from the origin took minutes), then the
+nodes are mapped back. The relative settings are unchanged by this, as both are fractions of
+the diagonal.
 """
 
 import importlib.util
@@ -75,6 +82,8 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=600.0, pyth
     (default ``sys.executable``, which inside Blender is Blender's bundled Python);
     num_threads: fTetWild threads, 0 = all cores; should_cancel: optional callable polled a few
     times a second, and when it returns True the worker is killed and TetMeshError raised.
+    Vertices no face uses are ignored, and fTetWild sees the surface centred and scaled to a
+    unit bounding-box diagonal (module docstring).
     Returns X (N, 3) float64 and T (E, 4) int64, positively oriented, every node used.
     Raises TetMeshError for unusable input or when fTetWild fails, crashes or times out.
     """
@@ -82,6 +91,28 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=600.0, pyth
     F = np.asarray(F)
     assert F.ndim == 2 and F.shape[1] == 3, f"F must be (M, 3) triangles, got shape {F.shape}"
     check_surface(V, F)
+    V, F = _used_vertices(V, F)
+    centre, diagonal = _normalisation(V)
+    X, T = _run_tetwild((V - centre) / diagonal, F, edge_length_fac, epsilon, timeout, python,
+                        num_threads, should_cancel)
+    T = fem.orient_tets(X, T)  # in unit coordinates, where volumes are best resolved
+    return X * diagonal + centre, T
+
+
+def _used_vertices(V, F):
+    """(V', F') keeping only the vertices some face uses, F renumbered."""
+    used, F_new = np.unique(F, return_inverse=True)
+    return V[used], F_new.reshape(F.shape)
+
+
+def _normalisation(V):
+    """(centre (3,), diagonal) of V's bounding box: fTetWild gets (V - centre) / diagonal."""
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+
+
+def _run_tetwild(V, F, edge_length_fac, epsilon, timeout, python, num_threads, should_cancel):
+    """fTetWild on (V, F) in the worker process: (X (N, 3) float64, T (E, 4) int64), nodes used."""
     with tempfile.TemporaryDirectory(prefix="rs_elastic_tetwild_") as tmp:
         in_path, out_path = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         with open(in_path, "wb") as f:
@@ -96,8 +127,7 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=600.0, pyth
             raise TetMeshError(f"fTetWild produced no readable result ({exc})") from exc
     if T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
         raise TetMeshError("fTetWild produced no tetrahedra; is the surface closed and not tiny?")
-    X, T = _remove_unreferenced(X, T)
-    return X, fem.orient_tets(X, T)
+    return _remove_unreferenced(X, T)
 
 
 def _worker_env():

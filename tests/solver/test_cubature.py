@@ -149,7 +149,7 @@ def test_reduced_rs_cubature_training(small_bar):
     B = reduced.second_order_basis(X, T, masses, modal_rs, recon, result.vectors, max_size=30)
     poses = cubature.training_poses(6, result.eigenvalues, 30, np.random.default_rng(1),
                                     modal_rs=modal_rs)
-    tets, weights, info = cubature.train_reduced_rs_cubature(
+    tets, weights, info = reduced.train_reduced_rs_cubature(
         X, T, modal_rs, B, recon, poses, max_tets=60, tol=1e-3, rng=np.random.default_rng(2))
     assert len(np.unique(tets)) == len(tets) <= 60 and np.all(weights > 0.0)
     assert np.all(np.diff(info["history"]) <= 1e-12)
@@ -166,4 +166,4 @@ def test_reduced_rs_cubature_training(small_bar):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        cubature.train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, progress=cancel)
+        reduced.train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, progress=cancel)

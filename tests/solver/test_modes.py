@@ -169,3 +169,93 @@ def test_disconnected_free_body_raises():
         modes.linear_modes(K, m, 3, pinned_nodes=[0, 1, 2])
     both_pinned = [0, 1, 2, len(X1), len(X1) + 1, len(X1) + 2]  # three corners of each part
     assert np.all(modes.linear_modes(K, m, 3, pinned_nodes=both_pinned).eigenvalues > 0)
+
+
+# Determinism: signs and repeated-eigenvalue bases ---------------------------------------------
+
+def block_problem(cells=(10, 4, 4), size=(2.0, 0.8, 0.6), warp=0.02):
+    X, T = meshgen.box_tet_mesh(size, cells)
+    X = X + warp * np.sin(3.0 * X[:, [1, 2, 0]])
+    T = fem.orient_tets(X, T)
+    return X, T, fem.stiffness_matrix(X, T, E, NU), fem.lumped_masses(X, T, RHO)
+
+
+def permuted(X, T, order):
+    """The same mesh with node i renamed to position order^-1[i]: X_new = X[order]."""
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    return X[order], inverse[T]
+
+
+@pytest.mark.parametrize("with_positions", [True, False], ids=["positions", "index"])
+def test_same_call_twice_gives_identical_modes(with_positions):
+    """ARPACK's start vector is fixed: two calls in one process agree bit for bit."""
+    X, T, K, m = block_problem()
+    pins = np.flatnonzero(X[:, 0] < 0.25)
+    rest = X if with_positions else None
+    first = modes.linear_modes(K, m, 20, pins, rest_positions=rest)
+    spla.eigsh(K, k=3, sigma=-1.0)  # advance any global random state between the calls
+    second = modes.linear_modes(K, m, 20, pins, rest_positions=rest)
+    np.testing.assert_array_equal(first.vectors, second.vectors)
+    np.testing.assert_array_equal(first.eigenvalues, second.eigenvalues)
+
+
+@pytest.mark.parametrize("dense_limit", [0, 10 ** 6], ids=["eigsh", "dense"])
+def test_renumbered_nodes_give_the_same_modes(monkeypatch, dense_limit):
+    """Modes are a property of the body, not of its node numbering (signs included)."""
+    monkeypatch.setattr(modes, "DENSE_LIMIT", dense_limit)
+    X, T, K, m = block_problem()
+    order = np.random.default_rng(7).permutation(len(X))
+    Xp, Tp = permuted(X, T, order)
+    a = modes.linear_modes(K, m, 12, rest_positions=X)
+    b = modes.linear_modes(fem.stiffness_matrix(Xp, Tp, E, NU), fem.lumped_masses(Xp, Tp, RHO),
+                           12, rest_positions=Xp)
+    np.testing.assert_allclose(b.eigenvalues, a.eigenvalues, rtol=1e-10)
+    Wa = a.vectors.reshape(len(X), 3, -1)[order]
+    Wb = b.vectors.reshape(len(X), 3, -1)
+    np.testing.assert_allclose(Wb, Wa, atol=1e-8 * np.abs(Wa).max())
+
+
+def test_fresh_interpreter_gives_the_same_modes(tmp_path):
+    """A new process (new ARPACK state, new address space) reproduces the modes to 1e-10."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (
+        "import sys, numpy as np\n"
+        "sys.path[:0] = sys.argv[2:]\n"
+        "from tests.solver.test_modes import block_problem\n"
+        "from solver import modes\n"
+        "X, T, K, m = block_problem()\n"
+        "r = modes.linear_modes(K, m, 20, np.flatnonzero(X[:, 0] < 0.25), rest_positions=X)\n"
+        "np.save(sys.argv[1], r.vectors)\n")
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "w.npy"
+    subprocess.run([sys.executable, "-c", script, str(out), str(root), *sys.path], check=True,
+                   cwd=root)
+    X, T, K, m = block_problem()
+    here = modes.linear_modes(K, m, 20, np.flatnonzero(X[:, 0] < 0.25), rest_positions=X)
+    np.testing.assert_allclose(np.load(out), here.vectors, rtol=0, atol=1e-10)
+
+
+def test_symmetric_cube_gets_one_basis_for_its_repeated_eigenvalues(monkeypatch):
+    """A cube meshed symmetrically under axis permutations has repeated eigenvalues; the basis
+    inside each cluster is fixed by the test fields, so two different eigensolvers (ARPACK and
+    LAPACK, which return different arbitrary bases) and a renumbering all give the same modes."""
+    X, T = meshgen.box_tet_mesh((1.0, 1.0, 1.0), (5, 5, 5))
+    K, m = fem.stiffness_matrix(X, T, E, NU), fem.lumped_masses(X, T, RHO)
+    r = 14
+    lanczos = modes.linear_modes(K, m, r, rest_positions=X)
+    lam = lanczos.eigenvalues
+    assert np.sum(np.diff(lam) <= 1e-8 * lam[1:]) >= 3  # the test needs repeated eigenvalues
+    monkeypatch.setattr(modes, "DENSE_LIMIT", 10 ** 6)
+    dense = modes.linear_modes(K, m, r, rest_positions=X)
+    scale = np.abs(lanczos.vectors).max()
+    np.testing.assert_allclose(dense.vectors, lanczos.vectors, atol=1e-6 * scale)
+    order = np.random.default_rng(8).permutation(len(X))
+    Xp, Tp = permuted(X, T, order)
+    renumbered = modes.linear_modes(fem.stiffness_matrix(Xp, Tp, E, NU),
+                                    fem.lumped_masses(Xp, Tp, RHO), r, rest_positions=Xp)
+    np.testing.assert_allclose(renumbered.vectors.reshape(len(X), 3, r),
+                               dense.vectors.reshape(len(X), 3, r)[order], atol=1e-6 * scale)

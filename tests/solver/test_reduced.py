@@ -184,7 +184,7 @@ def test_error_falls_as_the_cubature_grows(bar, held_out):
     poses = bar["info"]["cubature_poses"]
     errors = []
     for size in (10, 40):
-        tets, weights, fit = cubature.train_reduced_rs_cubature(
+        tets, weights, fit = reduced.train_reduced_rs_cubature(
             X, T, bar["modal_rs"], deformer.basis, bar["recon"], poses, max_tets=size,
             rng=np.random.default_rng(3))
         smaller = reduced.ReducedRS.build(X, T, bar["modal_rs"], deformer.basis, bar["recon"],
@@ -241,7 +241,7 @@ def column_errors(J, fd):
 @pytest.mark.parametrize("which", ["rest", "small", "large"])
 def test_q_jacobian_matches_central_differences(bar, which):
     deformer = bar["deformer"]
-    per_unit = reduced.max_mode_rotations(bar["modal_rs"])
+    per_unit = rs.max_mode_rotations(bar["modal_rs"])
     z = {"rest": np.zeros(NUM_MODES),
          "small": 1e-3 * bar["info"]["cubature_poses"][30],
          "large": bar["info"]["cubature_poses"][40]}[which]
@@ -278,7 +278,7 @@ def test_batches_equal_stacked_single_evaluations(bar):
     np.testing.assert_allclose(u, np.stack([evaluator.displacement(z) for z in Z]), atol=1e-12)
     np.testing.assert_allclose(Jr, np.stack([evaluator.jacobian(z) for z in Z]), atol=1e-12)
     # q_jacobian_batch also matches central differences frame by frame (one frame checked).
-    steps = 1e-5 / reduced.max_mode_rotations(bar["modal_rs"])
+    steps = 1e-5 / rs.max_mode_rotations(bar["modal_rs"])
     fd = central_differences(deformer.q, Z[5], steps)
     assert column_errors(J[5], fd).max() <= 1e-5
 
@@ -355,3 +355,46 @@ def test_prepare_progress_can_abort_and_reports_fractions(bar):
                                    bar["eigenvalues"], bar["recon"], modal_rs=bar["modal_rs"],
                                    num_snapshots=20, progress=progress)
     assert fractions == sorted(fractions) and 0.5 <= fractions[-1] < 1.0
+
+
+# Range edge cases: one mode, tiny meshes --------------------------------------------------------
+
+def tiny_body(cells, num_modes, pinned=True):
+    X, T = meshgen.box_tet_mesh((2.0, 1.0, 1.0), cells)
+    pins = np.flatnonzero(X[:, 0] < 1e-9) if pinned else None
+    masses = fem.lumped_masses(X, T, 1000.0)
+    result = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.3), masses, num_modes, pins,
+                                rest_positions=X)
+    recon = rs.PoissonReconstruction(X, T, pinned_nodes=pins)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, result.vectors, result.eigenvalues,
+                                             recon, num_snapshots=20, num_poses=20)
+    return X, T, result, recon, deformer
+
+
+@pytest.mark.parametrize("cells, num_modes, pinned", [
+    ((8, 2, 2), 1, True),    # num_modes = 1, the setting's minimum (was a numpy matmul error)
+    ((2, 1, 1), 6, True),    # 24 free DOFs, fewer than the default basis (was a LinAlgError)
+    ((1, 1, 1), 6, True),    # 12 free DOFs
+    ((2, 1, 1), 1, False),   # a free body with one deformation mode
+], ids=["one-mode", "24-dofs", "12-dofs", "free-one-mode"])
+def test_smallest_settings_and_meshes_prepare(cells, num_modes, pinned):
+    """Every declared range works. Oracle: small poses are the linear modal motion (reduced RS
+    is tangent to it at rest), and the basis never outgrows the free DOFs."""
+    X, T, result, recon, deformer = tiny_body(cells, num_modes, pinned)
+    free_dofs = 3 * (len(X) - len(result.pinned_nodes))
+    assert deformer.basis.shape[1] <= free_dofs
+    z = 1e-4 / rs.max_mode_rotations(rs.linear_rs(rs.rs_operator(X, T), result.vectors))
+    u = deformer.displacement(z)
+    linear = (result.vectors @ z).reshape(-1, 3)
+    assert np.abs(u - linear).max() <= 1e-3 * np.abs(linear).max()
+
+
+def test_reduced_projection_of_a_dependent_basis_says_why():
+    X, T = meshgen.box_tet_mesh((2.0, 1.0, 1.0), (1, 1, 1))
+    pins = np.flatnonzero(X[:, 0] < 1e-9)
+    recon = rs.PoissonReconstruction(X, T, pinned_nodes=pins)
+    B = np.zeros((3 * len(X), 13))                     # 13 vectors in 12 free DOFs
+    free = np.repeat(X[:, 0] > 1e-9, 3)
+    B[free] = np.random.default_rng(0).normal(size=(12, 13))
+    with pytest.raises(ValueError, match="not independent"):
+        reduced.ReducedProjection(X, T, B, recon)

@@ -5,6 +5,8 @@ assembled row by row from E_f's definition, the analytic damped oscillator, clos
 one-parameter least squares, full RS volumes, and a full-space Newmark reference simulation.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -302,8 +304,12 @@ def test_large_edit_meets_the_handle_and_keeps_volume_unlike_linear_modes(reduce
 def test_continuation_avoids_the_poor_basin_of_stiff_handles(reduced_bar):
     """Five cross-sections keyed onto a 45 deg, then a 90 deg arc (the bench's edit).
 
-    Measured: J 3.8e6 with the continuation, 6.1e8 without (residuals 7e-7 / 7e-6 of the
-    diagonal): the first stiff GN step from rest lands in a bad RS basin.
+    Oracle: path following in the size of the edit. The same problem with the targets moved
+    from rest in ten steps of 10 %, each solved from the previous one, follows the natural
+    basin from the undeformed bar; the one-shot solve with the penalty continuation must meet
+    the handles and reach that objective within 10 % (measured: 3.81e6 against 3.77e6,
+    residuals 8e-7 and 4e-7 of the diagonal; the cold solve lands in a basin that depends on
+    the modes' signs, 2.7e8 to 1.9e9, so it is only printed).
     """
     X, T, eigenvalues, W, B, deformer = reduced_bar
     planes = np.unique(X[:, 0])
@@ -320,15 +326,25 @@ def test_continuation_avoids_the_poor_basin_of_stiff_handles(reduced_bar):
     problem = st.SpaceTimeProblem(100, h, eigenvalues, damping, deformer, handles=handles,
                                   gamma=gamma)
     warm = st.solve(problem, iterations=100)
+    followed = None
+    for fraction in np.linspace(0.1, 1.0, 10):
+        partial = replace(handles, targets=handles.rest + fraction * (handles.targets
+                                                                     - handles.rest))
+        followed = st.solve(replace(problem, handles=partial), iterations=100,
+                            initial=None if followed is None else followed.Z,
+                            continuation=False)
     cold = st.solve(problem, iterations=100, continuation=False)
     diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
-    print(f"five handles, 90 deg arc: J with continuation {warm.objective:.3e} (residual / "
-          f"diagonal {warm.handle_residuals.max() / diagonal:.1e}), without "
-          f"{cold.objective:.3e} ({cold.handle_residuals.max() / diagonal:.1e})")
+    print(f"five handles, 90 deg arc: J with continuation {warm.objective:.4e} (residual / "
+          f"diagonal {warm.handle_residuals.max() / diagonal:.1e}), path-followed "
+          f"{followed.objective:.4e} ({followed.handle_residuals.max() / diagonal:.1e}), "
+          f"cold {cold.objective:.3e}")
     assert [entry[1] for entry in warm.history[:2]] == ["start", "warm"]
     assert np.all(np.diff(warm.objective_history) <= 0.0)
-    assert warm.objective < 0.01 * cold.objective
+    assert followed.handle_residuals.max() <= 1e-3 * diagonal   # the reference is an answer
     assert warm.handle_residuals.max() <= 1e-3 * diagonal
+    # Nearby local minima of the natural family differ by ~1 %; the poor basin is 70x higher.
+    assert warm.objective <= 1.10 * followed.objective
 
 
 # 4. Material optimisation -------------------------------------------------------------------

@@ -146,3 +146,44 @@ def test_worker_interpreter_is_configurable(tmp_path):
         tetmesh.tetrahedralize(*cube_surface(), python=str(tmp_path / "missing"))
     X, T = tetmesh.tetrahedralize(*cube_surface(), edge_length_fac=0.3, python=sys.executable)
     check_tet_mesh(X, T)
+
+
+# Input hygiene: loose vertices and far-away or huge bodies ------------------------------------
+
+def test_loose_vertices_do_not_change_the_mesh():
+    """A vertex no face uses, far from a unit cube, is ignored: the edge length stays a fraction
+    of the cube's diagonal (before: 6 tets with it at (10, 10, 10), SIGSEGV farther away)."""
+    V, F = cube_surface(1.0)
+    alone = tetmesh.tetrahedralize(V, F, edge_length_fac=0.1)
+    counts = [len(alone[1])]
+    for loose in ([10.0, 10.0, 10.0], [1e6, -3e5, 2e6]):
+        X, T = tetmesh.tetrahedralize(np.vstack([V[:3], [loose], V[3:]]),
+                                      np.where(F >= 3, F + 1, F), edge_length_fac=0.1)
+        check_tet_mesh(X, T)
+        assert np.abs(X).max() <= 1.0 + 1e-9  # the loose vertex is not a node
+        assert fem.mesh_volume(X, T) == pytest.approx(1.0, rel=0.01)
+        counts.append(len(T))
+    print("tets: cube alone, with a loose vertex at 10 m, at 2e6 m:", counts)
+    assert max(counts) <= 1.5 * min(counts)
+
+
+def test_far_and_scaled_cubes_mesh_like_the_cube_at_the_origin():
+    """fTetWild sees unit coordinates: a cube 1e7 m away (before: blocked for 600 s) or a
+    1 km cube meshes as fast and as finely as the unit cube at the origin."""
+    V, F = cube_surface(1.0)
+    X0, T0 = tetmesh.tetrahedralize(V, F, edge_length_fac=0.1)
+    offset = np.array([1e7, -2e7, 3e6])
+    start = time.monotonic()
+    X1, T1 = tetmesh.tetrahedralize(V + offset, F, edge_length_fac=0.1, timeout=60.0)
+    far_time = time.monotonic() - start
+    X2, T2 = tetmesh.tetrahedralize(V * 1000.0, F, edge_length_fac=0.1, timeout=60.0)
+    print(f"tets at the origin {len(T0)}, at 1e7 m {len(T1)} ({far_time:.1f} s), "
+          f"1 km cube {len(T2)}")
+    check_tet_mesh(X1, T1)
+    check_tet_mesh(X2, T2)
+    assert far_time < 30.0
+    assert X1.min(axis=0) == pytest.approx(offset, abs=1e-6)
+    assert X1.max(axis=0) == pytest.approx(offset + 1.0, abs=1e-6)
+    assert fem.mesh_volume(X1 - offset, T1) == pytest.approx(1.0, rel=0.01)
+    assert fem.mesh_volume(X2, T2) == pytest.approx(1e9, rel=0.01)
+    assert max(len(T0), len(T1), len(T2)) <= 1.5 * min(len(T0), len(T1), len(T2))
