@@ -76,7 +76,7 @@ def _key_positions(obj, name):
 
 def gather(obj, blender_scene):
     """Validate and collect everything the solve needs. Raises InputError."""
-    scene.require_mesh_object(obj)
+    scene.require_body(obj)
     tools = prepared_tools(obj)
     settings = obj.rs_elastic
     frames = frame_range(obj, blender_scene)
@@ -157,4 +157,5 @@ def solve(job_inputs, job):
     q = job_inputs.tools.deformer.q_batch(result.inputs)                 # (F, rB)
     displacement = q @ job_inputs.tools.surface_basis.T                    # (F, 3n)
     poses = job_inputs.rest[None] + displacement.reshape(len(q), -1, 3)
+    bake.check_poses(job_inputs.object_name, job_inputs.rest, poses)
     return result, poses
