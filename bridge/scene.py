@@ -56,6 +56,9 @@ def require_body(obj):
     return obj
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def check_settings(obj):
     """Refuse non-finite numbers in any setting, and a material beyond MATERIAL_LIMITS."""
     settings = obj.rs_elastic
@@ -63,6 +66,8 @@ def check_settings(obj):
         for prop in struct.bl_rna.properties:
             if prop.type == 'FLOAT' and not prop.is_readonly and prop.array_length == 0:
                 value = getattr(struct, prop.identifier)
+                if abs(value) >= FLOAT32_MAX:     # Blender stores an infinity as ±FLOAT32_MAX
+                    value = math.copysign(math.inf, value)
                 if not math.isfinite(value):
                     raise InputError(f"'{obj.name}': {prop.name} is {value:g}; it must be a "
                                      "finite number")
