@@ -389,6 +389,17 @@ def test_loose_vertex_is_left_out_of_the_tets():
     assert first_frequency(loose) == pytest.approx(plain, rel=0.05)
 
 
+def test_coarsest_pinned_cube():
+    """The declared largest edge length on a small pinned body (few tet nodes) prepares."""
+    obj = cube()
+    obj.rs_elastic.edge_length = 0.5
+    group = obj.vertex_groups.new(name="Pin")
+    group.add([v.index for v in obj.data.vertices if v.co.z < 0], 1.0, 'REPLACE')
+    obj.rs_elastic.pin_group = "Pin"
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert obj.rs_elastic.frequencies[0] > 0.0
+
+
 @pytest.mark.skip(reason=WAITS_ON_SOLVER + "; today fTetWild blocks for 600 s on it")
 def test_far_from_the_origin():
     plain = first_frequency(cube("Plain"))
@@ -449,6 +460,8 @@ def test_command_line(ext, tmp_path, capsys, argv, code, message, settings):
     # stderr is one line; stdout may only hold Blender's own echo of an operator's report.
     assert err.splitlines() == [f"rs_elastic: error: {message.format(blend=blend, tmp=tmp_path)}"]
     assert "Traceback" not in out and "rs_elastic:" not in out
+    if code == 2:                                      # refused before any work
+        assert not obj.rs_elastic.is_prepared and obj.rs_elastic.tet_count == 0
     assert blend.read_bytes() == saved                 # the open file is never overwritten
     assert not (tmp_path / "out.blend").exists() and not (tmp_path / "out.txt").exists()
     assert user_fingerprint() == before
