@@ -69,12 +69,13 @@ def role(keys, block):
     return _legacy_role(keys, block)
 
 
-def _tag(keys, block, what):
+def _tag(keys, roles):
+    """Record {key name: role} for keys the extension just wrote (one write for many keys)."""
     tags = keys.get(TAGS)
     tags = {} if tags is None else tags.to_dict()
     names = set(keys.key_blocks.keys())
     tags = {name: r for name, r in tags.items() if name in names}   # forget removed keys
-    tags[block.name] = what
+    tags.update(roles)
     keys[TAGS] = tags
 
 
@@ -92,14 +93,16 @@ def owned_keys(obj, what):
     return [b for b in keys.key_blocks if role(keys, b) == what]
 
 
-def add_owned_key(obj, name, what):
-    """A new key tagged as the extension's, on a Basis (the user's first key if there is one)."""
+def add_owned_keys(obj, names, what):
+    """New keys tagged as the extension's `what`, on a Basis (the user's first key if there is
+    one, else one the extension adds and tags). Blender may suffix a name that is taken."""
+    roles = {}
     if obj.data.shape_keys is None:
-        basis = obj.shape_key_add(name="Basis", from_mix=False)
-        _tag(obj.data.shape_keys, basis, "basis")
-    block = obj.shape_key_add(name=name, from_mix=False)
-    _tag(obj.data.shape_keys, block, what)
-    return block
+        roles[obj.shape_key_add(name="Basis", from_mix=False).name] = "basis"
+    blocks = [obj.shape_key_add(name=name, from_mix=False) for name in names]
+    roles.update((block.name, what) for block in blocks)
+    _tag(obj.data.shape_keys, roles)
+    return blocks
 
 
 def remove_owned_keys(obj, blocks):
@@ -139,8 +142,7 @@ def replace_key_set(obj, prefix, names, positions):
     """Remove the extension's in-between keys whose name starts with `prefix`, then add one key
     per (name, positions)."""
     remove_owned_keys(obj, [b for b in owned_keys(obj, "inbetween") if b.name.startswith(prefix)])
-    for name, pose in zip(names, positions):
-        key = add_owned_key(obj, name, "inbetween")
+    for key, pose in zip(add_owned_keys(obj, names, "inbetween"), positions):
         _set_positions(key, pose)
         key.value = 0.0
     obj.data.update()
@@ -169,12 +171,10 @@ def write_bake(obj, frames, positions):
     """
     require_single_user(obj)
     clear_bake(obj)
-    blocks = []
-    for frame, pose in zip(frames, positions):
-        block = add_owned_key(obj, bake_key_name(frame), "bake")
+    blocks = add_owned_keys(obj, [bake_key_name(frame) for frame in frames], "bake")
+    for block, pose in zip(blocks, positions):
         _set_positions(block, pose)
         block.value = 0.0
-        blocks.append(block)
     keys = obj.data.shape_keys
     fcurves = _fcurves(keys, create=True)
     for frame, block in zip(frames, blocks):
@@ -230,9 +230,8 @@ def keep_bake_as_take(obj):
             if curve is not None:
                 curves.remove(curve)
         block.value = 0.0
-        _untag(keys, block.name)
         block.name = f"{TAKE_PREFIX}{frame:04d}"
-        _tag(keys, block, "take")
+    _tag(keys, {block.name: "take" for _, block in blocks})     # the bake names drop out
     obj.data.update()
     return [frame for frame, _ in blocks]
 

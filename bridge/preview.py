@@ -60,7 +60,7 @@ def show(obj):
     positions = preview_positions(obj, tools)
     key = _preview_key(obj)
     if key is None:
-        key = bake.add_owned_key(obj, PREVIEW_KEY, "preview")
+        key, = bake.add_owned_keys(obj, [PREVIEW_KEY], "preview")
     key.data.foreach_set("co", positions.astype(np.float32).ravel())
     key.value = 1.0
     obj.data.update()

@@ -27,8 +27,9 @@ def require_single_user(obj):
     """Refuse a mesh shared by linked duplicates: its shape keys belong to every object using
     it, so one object's bake would replace the other's."""
     mesh = obj.data
-    if mesh.users > 1:
-        raise InputError(f"'{obj.name}' shares its mesh '{mesh.name}' with {mesh.users - 1} "
+    users = mesh.users - int(mesh.use_fake_user)
+    if users > 1:
+        raise InputError(f"'{obj.name}' shares its mesh '{mesh.name}' with {users - 1} "
                          "other object(s): make it single-user first (Object > Relations > "
                          "Make Single User > Object & Data)")
 

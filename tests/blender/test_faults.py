@@ -290,6 +290,28 @@ def test_blown_up_simulation_is_not_baked(ext, monkeypatch, bad, message):
     assert key_names(obj) == []
 
 
+def test_blown_up_solve_is_not_baked(ext, monkeypatch):
+    obj = prepared_bar()
+    tip = obj.vertex_groups.new(name="Tip")
+    tip.add([v.index for v in obj.data.vertices if v.co.x > 3.99], 1.0, 'REPLACE')
+    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
+    empty = obj.rs_elastic.handles[0].empty
+    empty.location.z += 0.5
+    empty.keyframe_insert("location", frame=3)
+    bpy.context.view_layer.objects.active = obj
+    solve = ext.solver.spacetime.solve
+
+    def blow_up(*args, **kwargs):
+        result = solve(*args, **kwargs)
+        result.Z[-1] = np.nan            # inputs = Z Sᵀ: the last frame is lost
+        return result
+
+    monkeypatch.setattr(ext.solver.spacetime, "solve", blow_up)
+    assert refusal(bpy.ops.rs_elastic.solve_spacetime) == (
+        "The motion of 'Bar' blew up (non-finite positions); nothing was baked")
+    assert key_names(obj) == []
+
+
 # --- the user's data: operators never touch what they did not make ------------------------------------
 
 def bake_then_clear(obj):
