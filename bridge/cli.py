@@ -14,12 +14,12 @@ import sys
 import bpy
 
 from . import bake
+from .spacetime_inputs import MAX_FRAMES
 
 OPERATORS = {"spacetime": "solve_spacetime", "simulate": "simulate"}
 
 
 MAX_FRAME = 1048574       # Blender's last frame
-MAX_FRAMES = 10000        # one shape key per frame: beyond this a bake is not usable
 
 
 class UsageError(Exception):

@@ -49,7 +49,7 @@ def require_body(obj):
     geometry, and finite, physical settings. Raises InputError."""
     require_mesh_object(obj)
     for modifier in obj.modifiers:
-        if modifier.type in COPYING_MODIFIERS and modifier.show_viewport:
+        if modifier.type in COPYING_MODIFIERS and (modifier.show_viewport or modifier.show_render):
             kind = modifier.type.replace("_", " ").title()
             raise InputError(f"'{obj.name}' has a {kind} modifier ('{modifier.name}'), which "
                              f"would copy the baked motion: apply the {kind} modifier first")

@@ -21,6 +21,9 @@ class SpaceTimeJob:
     warnings: list
 
 
+MAX_FRAMES = 10000   # a bake is one shape key per frame: beyond this it is not usable
+
+
 def frame_range(obj, blender_scene):
     settings = obj.rs_elastic
     if settings.use_scene_range:
@@ -29,6 +32,8 @@ def frame_range(obj, blender_scene):
         start, end = settings.frame_start, settings.frame_end
     if end - start + 1 < 3:
         raise InputError(f"The frame range {start}–{end} has fewer than 3 frames")
+    if end - start + 1 > MAX_FRAMES:
+        raise InputError(f"The frame range {start}–{end} has more than {MAX_FRAMES} frames")
     return list(range(start, end + 1))
 
 

@@ -111,6 +111,10 @@ def arrayed_bar():
     small_bar().modifiers.new("Row", 'ARRAY')
 
 
+def bar_mirrored_in_renders():
+    small_bar().modifiers.new("Mirror", 'MIRROR').show_viewport = False
+
+
 def bar_missing_pin_group():
     small_bar().rs_elastic.pin_group = "Nope"
 
@@ -178,6 +182,9 @@ REFUSALS = [
     ("mirror modifier", mirrored_bar, TETRAHEDRALIZE,
      "'Bar' has a Mirror modifier ('Mirror'), which would copy the baked motion: apply the "
      "Mirror modifier first"),
+    ("mirror in renders only", bar_mirrored_in_renders, PREPARE,
+     "'Bar' has a Mirror modifier ('Mirror'), which would copy the baked motion: apply the "
+     "Mirror modifier first"),
     ("array modifier", arrayed_bar, PREPARE,
      "'Bar' has a Array modifier ('Row'), which would copy the baked motion: apply the "
      "Array modifier first"),
@@ -211,6 +218,10 @@ def two_frames(obj):
     obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = 5, 6
 
 
+def too_many_frames(obj):
+    obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = 1, 20000
+
+
 def linked_after_prepare(obj):
     bpy.context.scene.collection.objects.link(obj.copy())
 
@@ -238,6 +249,8 @@ PREPARED_REFUSALS = [
     ("infinite gravity", infinite_gravity, "simulate", GRAVITY.format("3.4e+38")),
     ("no frames", two_frames, "simulate", "The frame range 5–6 has fewer than 3 frames"),
     ("no frames", two_frames, "solve_spacetime", "The frame range 5–6 has fewer than 3 frames"),
+    ("too many frames", too_many_frames, "simulate",
+     "The frame range 1–20000 has more than 10000 frames"),
     ("linked duplicate", linked_after_prepare, "simulate", LINKED),
     ("mirror modifier", mirror_after_prepare, "simulate",
      "'Bar' has a Mirror modifier ('Mirror'), which would copy the baked motion: apply the "
@@ -391,6 +404,15 @@ def test_a_bake_from_before_tagging_is_cleared(ext):
     assert key_names(obj) == ["Basis", notes.name, fake.name]
 
 
+@pytest.mark.parametrize("kind", ['SUBSURF', 'DISPLACE'])
+def test_subdivision_and_deforming_modifiers_stay_supported(kind):
+    obj = small_bar(use_scene_range=False, frame_start=1, frame_end=4)
+    obj.modifiers.new(kind.title(), kind)
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    assert len(key_names(obj)) == 1 + 4
+
+
 # --- settings at the ends of their declared range --------------------------------------------------------
 
 @pytest.mark.xfail(reason=WAITS_ON_SOLVER, strict=True)
@@ -468,6 +490,19 @@ CLI_ROWS = [
     ("bad material", ["--object", "Bar", "--mode", "simulate"], 1,
      "'Bar': Density is inf; it must be a finite number", {"density": float("inf")}),
 ]
+
+
+def test_command_line_in_a_new_blender_process(tmp_path):
+    """The same handler as `blender -b shot.blend -c rs_elastic …`: one line, exit 2."""
+    from test_spacetime import run_cli
+    _, blend = saved_bar(tmp_path)
+    saved = blend.read_bytes()
+    result = run_cli(blend, ["bake", "--object", "Bar", "--frames", "abc"])
+    assert result.returncode == 2
+    errors = [line for line in result.stderr.splitlines() if "rs_elastic" in line]
+    assert errors == ["rs_elastic: error: --frames must look like 1-120, got 'abc'"]
+    assert "Traceback" not in result.stderr + result.stdout
+    assert blend.read_bytes() == saved
 
 
 @pytest.mark.parametrize("argv, code, message, settings",
