@@ -15,7 +15,12 @@ Bakes made before the tags (untagged, recognised by name) are migrated by `_lega
 named exactly `RS Bake <digits>` whose F-curve is the bake's own 0-1-0 step, or `RS Take
 <digits>` with no F-curve, or the preview key's name. That pattern is specific enough that a user
 key does not match it by accident. Their untagged Basis cannot be told from a user's, so it is
-kept (it repeats the mesh, so nothing shows).
+kept (it repeats the mesh, so nothing shows). Untagged in-between keys stay the user's: a new
+interpolation adds its keys beside them.
+
+Tags follow names, so a key the user deletes by hand leaves its name tagged until the extension
+next writes keys (`_tag` forgets names that no longer exist); a key the user creates under that
+very name in between would count as the extension's.
 """
 import re
 
