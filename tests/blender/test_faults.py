@@ -492,6 +492,15 @@ CLI_ROWS = [
 ]
 
 
+def test_command_line_on_a_file_never_saved(ext, capsys):
+    obj = small_bar()
+    before = user_fingerprint()
+    assert ext.bridge.cli.main(["bake", "--object", "Bar"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "rs_elastic: error: the open file was never saved: pass --output FILE.blend"]
+    assert not obj.rs_elastic.is_prepared and user_fingerprint() == before
+
+
 def test_command_line_in_a_new_blender_process(tmp_path):
     """The same handler as `blender -b shot.blend -c rs_elastic …`: one line, exit 2."""
     from test_spacetime import run_cli
