@@ -2,39 +2,171 @@
 
 A baked animation is the form every RS Elastic bake takes: key `RS Bake 0042` holds frame 42's
 pose and is keyed 0 on frame 41, 1 on frame 42 and 0 on frame 43, with constant interpolation, so
-scrubbing plays the bake. Baking again replaces the previous bake (its keys and their F-curves);
-the user's own shape keys and keyframes are never touched.
+scrubbing plays the bake. Baking again replaces the previous bake (its keys and their F-curves).
+
+Ownership. The extension only ever removes or changes keys it made. Shape keys (ShapeKey) cannot
+hold custom properties, so the tags live on the Key datablock: `key["rs_elastic"]` maps the name
+of each key the extension wrote to its role ("bake", "take", "preview", "basis", "inbetween").
+A key the user renames loses its tag and becomes the user's; a user's key is never tagged, so a
+key named `RS Bake notes` or a first key named `Rest` is left alone. The Basis is removed only if
+the extension created it and nothing else is left on it.
+
+Bakes made before the tags (untagged, recognised by name) are migrated by `_legacy_role`: a key
+named exactly `RS Bake <digits>` whose F-curve is the bake's own 0-1-0 step, or `RS Take
+<digits>` with no F-curve, or the preview key's name. That pattern is specific enough that a user
+key does not match it by accident. Their untagged Basis cannot be told from a user's, so it is
+kept (it repeats the mesh, so nothing shows). Untagged in-between keys stay the user's: a new
+interpolation adds its keys beside them.
+
+Tags follow names, so a key the user deletes by hand leaves its name tagged until the extension
+next writes keys (`_tag` forgets names that no longer exist); a key the user creates under that
+very name in between would count as the extension's.
 """
+import re
+
 import numpy as np
 
 from .animation import fcurves as _fcurves
+from .scene import InputError, require_single_user
 
 BAKE_PREFIX = "RS Bake "
 TAKE_PREFIX = "RS Take "     # a kept bake: the input motion of a space-time edit
+PREVIEW_KEY = "RS Elastic Preview"
+TAGS = "rs_elastic"          # ID property on the Key datablock: {key name: role}
+
+BLOW_UP_FACTOR = 100.0       # a pose larger than this × the body's rest size has blown up
 
 
 def bake_key_name(frame):
     return f"{BAKE_PREFIX}{frame:04d}"
 
 
-def _ensure_basis(obj):
-    if obj.data.shape_keys is None:
-        obj.shape_key_add(name="Basis", from_mix=False)
+# --- ownership ----------------------------------------------------------------------------------
 
+def _value_path(name):
+    return f'key_blocks["{name}"].value'
+
+
+def _legacy_role(keys, block):
+    """The role of an untagged key written before tagging existed, or None (the user's)."""
+    if block.name == PREVIEW_KEY:
+        return "preview"
+    match = re.fullmatch(r"RS (Bake|Take) (\d+)", block.name)
+    if match is None:
+        return None
+    curves = _fcurves(keys, create=False)
+    curve = None if curves is None else curves.find(_value_path(block.name))
+    if match.group(1) == "Take":
+        return "take" if curve is None else None
+    if curve is None or len(curve.keyframe_points) != 3:
+        return None
+    frame = int(match.group(2))
+    co = np.empty(6)
+    curve.keyframe_points.foreach_get("co", co)
+    return "bake" if np.allclose(co, [frame - 1, 0, frame, 1, frame + 1, 0]) else None
+
+
+def role(keys, block):
+    """What the extension made `block` for ("bake", "take", …), or None if it is the user's."""
+    tags = keys.get(TAGS)
+    if tags is not None and block.name in tags.keys():
+        return tags[block.name]
+    return _legacy_role(keys, block)
+
+
+def _tag(keys, roles):
+    """Record {key name: role} for keys the extension just wrote (one write for many keys)."""
+    tags = keys.get(TAGS)
+    tags = {} if tags is None else tags.to_dict()
+    names = set(keys.key_blocks.keys())
+    tags = {name: r for name, r in tags.items() if name in names}   # forget removed keys
+    tags.update(roles)
+    keys[TAGS] = tags
+
+
+def _untag(keys, name):
+    tags = keys.get(TAGS)
+    if tags is not None and name in tags.keys():
+        del tags[name]
+
+
+def owned_keys(obj, what):
+    """The object's shape keys the extension made for `what` (a role)."""
+    keys = obj.data.shape_keys
+    if keys is None:
+        return []
+    return [b for b in keys.key_blocks if role(keys, b) == what]
+
+
+def add_owned_keys(obj, names, what):
+    """New keys tagged as the extension's `what`, on a Basis (the user's first key if there is
+    one, else one the extension adds and tags). Blender may suffix a name that is taken."""
+    roles = {}
+    if obj.data.shape_keys is None:
+        roles[obj.shape_key_add(name="Basis", from_mix=False).name] = "basis"
+    blocks = [obj.shape_key_add(name=name, from_mix=False) for name in names]
+    roles.update((block.name, what) for block in blocks)
+    _tag(obj.data.shape_keys, roles)
+    return blocks
+
+
+def remove_owned_keys(obj, blocks):
+    """Remove these keys (the extension's own) and their F-curves; drop the Basis if the
+    extension made it and nothing else is left on it."""
+    keys = obj.data.shape_keys
+    if keys is None:
+        return 0
+    curves = _fcurves(keys, create=False)
+    if curves is not None:
+        paths = {_value_path(b.name) for b in blocks}
+        for curve in [c for c in curves if c.data_path in paths]:
+            curves.remove(curve)
+    for block in list(blocks):
+        name = block.name
+        obj.shape_key_remove(block)
+        _untag(keys, name)
+    _drop_own_basis(obj)
+    return len(blocks)
+
+
+def _drop_own_basis(obj):
+    keys = obj.data.shape_keys
+    if keys is None or len(keys.key_blocks) != 1:
+        return
+    if role(keys, keys.key_blocks[0]) == "basis":
+        obj.shape_key_clear()
+
+
+# --- writing --------------------------------------------------------------------------------------
 
 def _set_positions(key_block, positions):
     key_block.data.foreach_set("co", np.asarray(positions, dtype=np.float32).ravel())
 
 
 def replace_key_set(obj, prefix, names, positions):
-    """Remove the keys whose name starts with `prefix`, then add one key per (name, positions)."""
-    remove_keys(obj, prefix)
-    _ensure_basis(obj)
-    for name, pose in zip(names, positions):
-        key = obj.shape_key_add(name=name, from_mix=False)
+    """Remove the extension's in-between keys whose name starts with `prefix`, then add one key
+    per (name, positions)."""
+    remove_owned_keys(obj, [b for b in owned_keys(obj, "inbetween") if b.name.startswith(prefix)])
+    for key, pose in zip(add_owned_keys(obj, names, "inbetween"), positions):
         _set_positions(key, pose)
         key.value = 0.0
     obj.data.update()
+
+
+def check_poses(object_name, rest, poses):
+    """Raise InputError if poses (F, n, 3) are not finite or a pose is far larger than the body
+    at rest (a simulation or solve that blew up): nothing such is ever baked. The size, not the
+    displacement, is measured, so a free body may fall any distance."""
+    poses = np.asarray(poses)
+    if not np.all(np.isfinite(poses)):
+        raise InputError(f"The motion of '{object_name}' blew up (non-finite positions); "
+                         "nothing was baked")
+    size = np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))
+    largest = np.linalg.norm(poses.max(axis=1) - poses.min(axis=1), axis=1).max(initial=0.0)
+    if largest > BLOW_UP_FACTOR * size:
+        raise InputError(f"The motion of '{object_name}' blew up ({largest / size:.3g} times "
+                         "its size at rest); check gravity, material and damping. Nothing "
+                         "was baked")
 
 
 def write_bake(obj, frames, positions):
@@ -42,16 +174,16 @@ def write_bake(obj, frames, positions):
 
     Returns the names of the user's keys whose value is not 0: they add on top of the bake.
     """
+    require_single_user(obj)
     clear_bake(obj)
-    _ensure_basis(obj)
+    blocks = add_owned_keys(obj, [bake_key_name(frame) for frame in frames], "bake")
+    for block, pose in zip(blocks, positions):
+        _set_positions(block, pose)
+        block.value = 0.0
     keys = obj.data.shape_keys
-    for frame, pose in zip(frames, positions):
-        key = obj.shape_key_add(name=bake_key_name(frame), from_mix=False)
-        _set_positions(key, pose)
-        key.value = 0.0
     fcurves = _fcurves(keys, create=True)
-    for frame in frames:
-        curve = fcurves.new(f'key_blocks["{bake_key_name(frame)}"].value', index=0)
+    for frame, block in zip(frames, blocks):
+        curve = fcurves.new(_value_path(block.name), index=0)
         curve.keyframe_points.add(3)
         curve.keyframe_points.foreach_set(
             "co", np.array([frame - 1, 0.0, frame, 1.0, frame + 1, 0.0], dtype=np.float32))
@@ -60,54 +192,28 @@ def write_bake(obj, frames, positions):
         curve.update()
     obj.data.update()
     return [k.name for k in keys.key_blocks
-            if k != keys.reference_key and not k.name.startswith(BAKE_PREFIX) and k.value != 0.0]
+            if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
 
 
 def clear_bake(obj):
     """Remove the bake's keys and F-curves. Returns how many keys were removed."""
-    return remove_keys(obj, BAKE_PREFIX)
+    return remove_owned_keys(obj, owned_keys(obj, "bake"))
+
+
+def _frame_of(block, prefix):
+    digits = block.name[len(prefix):]
+    return int(digits) if block.name.startswith(prefix) and digits.isdigit() else None
+
+
+def _frames_and_blocks(obj, what, prefix):
+    """[(frame, key)] of the extension's keys for `what`, by frame."""
+    pairs = ((_frame_of(b, prefix), b) for b in owned_keys(obj, what))
+    return sorted(((f, b) for f, b in pairs if f is not None), key=lambda pair: pair[0])
 
 
 def bake_frames(obj):
     """Sorted frames of the object's current bake (empty if none)."""
-    keys = obj.data.shape_keys
-    if keys is None:
-        return []
-    return sorted(int(k.name[len(BAKE_PREFIX):]) for k in keys.key_blocks
-                  if k.name.startswith(BAKE_PREFIX) and k.name[len(BAKE_PREFIX):].isdigit())
-
-
-def remove_keys(obj, prefix):
-    keys = obj.data.shape_keys
-    if keys is None:
-        return 0
-    doomed = [k for k in keys.key_blocks if k.name.startswith(prefix)]
-    fcurves = _fcurves(keys, create=False)
-    if fcurves is not None:
-        names = {f'key_blocks["{k.name}"].value' for k in doomed}
-        for curve in [c for c in fcurves if c.data_path in names]:
-            fcurves.remove(curve)
-    for key in doomed:
-        obj.shape_key_remove(key)
-    _drop_bare_basis(obj)
-    return len(doomed)
-
-
-def _drop_bare_basis(obj):
-    """Remove a Basis left alone with nothing animating it: it only repeats the mesh, and the
-    bake or key set that needed it is gone, so the object is as it was before."""
-    keys = obj.data.shape_keys
-    if keys is None or len(keys.key_blocks) != 1:
-        return
-    curves = _fcurves(keys, create=False)
-    if curves is not None and len(curves) > 0:
-        return
-    basis = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
-    keys.key_blocks[0].data.foreach_get("co", basis)
-    mesh = np.empty_like(basis)
-    obj.data.vertices.foreach_get("co", mesh)
-    if np.array_equal(basis, mesh):
-        obj.shape_key_clear()
+    return [frame for frame, _ in _frames_and_blocks(obj, "bake", BAKE_PREFIX)]
 
 
 def keep_bake_as_take(obj):
@@ -116,31 +222,28 @@ def keep_bake_as_take(obj):
     The take's keys stay at 0 and are not animated, so they show nothing by themselves; a
     previous take is replaced.
     """
-    frames = bake_frames(obj)
-    if not frames:
+    require_single_user(obj)
+    blocks = _frames_and_blocks(obj, "bake", BAKE_PREFIX)
+    if not blocks:
         return []
-    remove_keys(obj, TAKE_PREFIX)
+    remove_owned_keys(obj, owned_keys(obj, "take"))
     keys = obj.data.shape_keys
     curves = _fcurves(keys, create=False)
-    for frame in frames:
-        block = keys.key_blocks[bake_key_name(frame)]
+    for frame, block in blocks:
         if curves is not None:
-            curve = curves.find(f'key_blocks["{block.name}"].value')
+            curve = curves.find(_value_path(block.name))
             if curve is not None:
                 curves.remove(curve)
         block.value = 0.0
         block.name = f"{TAKE_PREFIX}{frame:04d}"
+    _tag(keys, {block.name: "take" for _, block in blocks})     # the bake names drop out
     obj.data.update()
-    return frames
+    return [frame for frame, _ in blocks]
 
 
 def take_poses(obj):
     """(frames, positions (F, n, 3)) of the stored take, or ([], None)."""
-    keys = obj.data.shape_keys
-    if keys is None:
-        return [], None
-    blocks = sorted((int(k.name[len(TAKE_PREFIX):]), k) for k in keys.key_blocks
-                    if k.name.startswith(TAKE_PREFIX) and k.name[len(TAKE_PREFIX):].isdigit())
+    blocks = _frames_and_blocks(obj, "take", TAKE_PREFIX)
     if not blocks:
         return [], None
     n = len(obj.data.vertices)

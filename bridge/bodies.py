@@ -171,7 +171,7 @@ class BodyInputs:
 
 def read_inputs(obj, depsgraph, with_material=True):
     """Validate the object and snapshot everything the stages need. Raises InputError."""
-    scene.require_mesh_object(obj)
+    scene.require_body(obj)
     settings = obj.rs_elastic
     V, F = scene.evaluated_triangles(obj, depsgraph)
     try:

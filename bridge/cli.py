@@ -1,88 +1,147 @@
 """The command line: `blender -b shot.blend -c rs_elastic bake --object NAME …`.
 
 `main(argv)` is the registered handler and what the tests call (the bpy module cannot take `-c`).
-It prepares what is missing, solves (space-time edit) or simulates, bakes, saves, and returns the
-exit code: 0 on success, 1 with one readable line on failure, 2 for bad arguments.
+Every argument is checked before any work. It prepares what is missing, solves (space-time edit)
+or simulates, bakes, saves, and returns the exit code: 0 on success, 2 with one readable line for
+a bad argument (unknown object, malformed or unbounded --frames, unusable --output), 1 with one
+line for a failure. The file is saved only after a bake succeeded.
 """
 import argparse
+import os
 import re
 import sys
 
 import bpy
 
 from . import bake
+from .spacetime_inputs import MAX_FRAMES
 
 OPERATORS = {"spacetime": "solve_spacetime", "simulate": "simulate"}
 
 
+MAX_FRAME = 1048574       # Blender's last frame
+
+
+class UsageError(Exception):
+    """A bad argument: exit code 2, before any work."""
+
+
+class CommandError(Exception):
+    """A failure while working: exit code 1."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing the usage and exiting, so a bad argument gives
+    one line like every other error."""
+
+    def error(self, message):
+        raise UsageError(message)
+
+
 def _parser():
-    parser = argparse.ArgumentParser(prog="blender -b FILE.blend -c rs_elastic",
-                                     description="RS Elastic on the command line")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(prog="blender -b FILE.blend -c rs_elastic",
+                     description="RS Elastic on the command line")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     bake_cmd = commands.add_parser("bake", help="prepare, solve or simulate, bake and save")
     bake_cmd.add_argument("--object", required=True, help="name of the body (a mesh object)")
     bake_cmd.add_argument("--mode", choices=sorted(OPERATORS), default="spacetime",
                           help="space-time edit (default) or simulation")
-    bake_cmd.add_argument("--frames", help="frame range A-B (default: the body's or the scene's)")
+    bake_cmd.add_argument("--frames", help=f"frame range A-B, at least 3 and at most "
+                                           f"{MAX_FRAMES} frames (default: the body's or the "
+                                           "scene's)")
     bake_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open file)")
     return parser
 
 
-class CommandError(Exception):
-    pass
-
-
 def _frame_range(text):
-    match = re.fullmatch(r"\s*(\d+)\s*-\s*(\d+)\s*", text or "")
-    if not match or int(match.group(2)) <= int(match.group(1)):
-        raise CommandError(f"--frames must look like 1-120 (start before end), got '{text}'")
-    return int(match.group(1)), int(match.group(2))
+    match = re.fullmatch(r"\s*(\d+)\s*-\s*(\d+)\s*", text)
+    if not match:
+        raise UsageError(f"--frames must look like 1-120, got '{text}'")
+    start, end = int(match.group(1)), int(match.group(2))
+    if end - start + 1 < 3:
+        raise UsageError(f"--frames {start}-{end} has fewer than 3 frames (start before end)")
+    if end > MAX_FRAME or end - start + 1 > MAX_FRAMES:
+        raise UsageError(f"--frames {start}-{end} is too long: at most {MAX_FRAMES} frames, "
+                         f"ending by frame {MAX_FRAME}")
+    return start, end
+
+
+def _output_path(text):
+    """The absolute .blend path to save to; its folder must exist and be writable."""
+    if text is None:
+        if not bpy.data.filepath:
+            raise UsageError("the open file was never saved: pass --output FILE.blend")
+        return bpy.data.filepath
+    path = os.path.abspath(bpy.path.abspath(text))
+    folder = os.path.dirname(path)
+    if not path.lower().endswith(".blend"):
+        raise UsageError(f"--output must be a .blend file, got '{text}'")
+    if not os.path.isdir(folder):
+        raise UsageError(f"--output: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise UsageError(f"--output: {path} is not writable")
+    if os.path.isdir(path):
+        raise UsageError(f"--output: {path} is a folder")
+    return path
+
+
+def _body(name):
+    obj = bpy.data.objects.get(name)
+    if obj is None:
+        raise UsageError(f"no object named '{name}' in {bpy.data.filepath or 'the open file'}")
+    if obj.type != 'MESH':
+        raise UsageError(f"'{obj.name}' is a {obj.type.lower()}, not a mesh")
+    if bpy.context.view_layer.objects.get(obj.name) is None:
+        raise UsageError(f"'{obj.name}' is not in the active scene's view layer")
+    return obj
 
 
 def _run_operator(name, message):
     try:
         result = getattr(bpy.ops.rs_elastic, name)()
     except RuntimeError as exc:     # the operator reported an error
-        raise CommandError(str(exc).replace("Error: ", "").strip()) from None
+        raise CommandError(str(exc).replace("Error: ", "").strip().splitlines()[0]) from None
     if result != {'FINISHED'}:
         raise CommandError(message)
 
 
 def bake_command(args):
-    obj = bpy.data.objects.get(args.object)
-    if obj is None:
-        raise CommandError(f"no object named '{args.object}' in "
-                           f"{bpy.data.filepath or 'the open file'}")
-    if obj.type != 'MESH':
-        raise CommandError(f"'{obj.name}' is a {obj.type.lower()}, not a mesh")
-    view_layer = bpy.context.view_layer
-    if view_layer.objects.get(obj.name) is None:
-        raise CommandError(f"'{obj.name}' is not in the active scene's view layer")
-    view_layer.objects.active = obj
-    if args.frames:
-        start, end = _frame_range(args.frames)
+    """Check every argument first (UsageError), then work; save only after everything worked,
+    so a failure never overwrites the open file."""
+    obj = _body(args.object)
+    frames = None if args.frames is None else _frame_range(args.frames)
+    output = _output_path(args.output)
+    bpy.context.view_layer.objects.active = obj
+    if frames is not None:
         obj.rs_elastic.use_scene_range = False
-        obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = start, end
+        obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = frames
     # Prepare is cheap when the cache is valid: it only checks and loads.
     _run_operator("prepare", f"could not prepare '{obj.name}'")
     _run_operator(OPERATORS[args.mode], f"the {args.mode} bake of '{obj.name}' did not finish")
-    output = args.output or bpy.data.filepath
-    if not output:
-        raise CommandError("the file was never saved: pass --output FILE.blend")
-    bpy.ops.wm.save_as_mainfile(filepath=output)
+    try:
+        bpy.ops.wm.save_as_mainfile(filepath=output)
+    except RuntimeError as exc:
+        raise CommandError(f"could not save {output}: "
+                           f"{str(exc).replace('Error: ', '').strip().splitlines()[0]}") from None
     frames = bake.bake_frames(obj)
     return f"baked frames {frames[0]}-{frames[-1]} of '{obj.name}' into {output}"
+
+
+def _say_error(message):
+    print(f"rs_elastic: error: {message}", file=sys.stderr, flush=True)
 
 
 def main(argv):
     try:
         args = _parser().parse_args(argv)
-    except SystemExit as exc:          # argparse printed the usage and the error
-        return int(exc.code or 0) and 2
-    try:
         message = bake_command(args)
+    except SystemExit as exc:          # --help
+        return int(exc.code or 0)
+    except UsageError as exc:
+        _say_error(exc)
+        return 2
     except CommandError as exc:
-        print(f"rs_elastic: error: {exc}", file=sys.stderr, flush=True)
+        _say_error(exc)
         return 1
     print(f"rs_elastic: {message}", flush=True)
     return 0

@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 
-from . import animation, bake, preview, scene
+from . import animation, bake, scene
 
 
 @dataclasses.dataclass
@@ -17,9 +17,9 @@ class HandleTrack:
     targets: np.ndarray    # (c, 3) metres, object space
 
 
-def _own_key(name):
-    return (name.startswith(bake.BAKE_PREFIX) or name.startswith(bake.TAKE_PREFIX)
-            or name == preview.PREVIEW_KEY)
+def _is_motion_key(keys, block):
+    """The extension's bake, take and preview keys are motion, never pose constraints."""
+    return bake.role(keys, block) in ("bake", "take", "preview")
 
 
 def read_handles(obj, blender_scene, frames):
@@ -79,7 +79,7 @@ def read_pose_keys(obj, frames):
     frame_set = set(int(f) for f in frames)
     poses = []
     for block in keys.key_blocks:
-        if block == keys.reference_key or _own_key(block.name):
+        if block == keys.reference_key or _is_motion_key(keys, block):
             continue
         for frame, value in animation.keyframes(keys, f'key_blocks["{block.name}"].value'):
             if abs(value - 1.0) < 1e-6 and int(round(frame)) in frame_set:

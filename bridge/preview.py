@@ -6,15 +6,17 @@ stretches. Reduced RS: the same through the reduced basis and cubature, Φ B q(s
 cost does not grow with the mesh. The scale s makes the linear mode's largest displacement the
 chosen amplitude.
 
-The preview owns one shape key, named PREVIEW_KEY, and the Basis key if the mesh had none. Turning
-the preview off removes exactly those, so the mesh is left as it was; the base vertices are never
-written.
+The preview owns one shape key, named PREVIEW_KEY and tagged as the extension's, and the Basis key
+if the mesh had none (see bake.py on ownership). Turning the preview off removes exactly those, so
+the mesh is left as it was; the base vertices and the user's keys are never written. A mesh shared
+by linked duplicates shows no preview: its keys belong to every object using it.
 """
 import numpy as np
 
-from . import rs_tools, scene
+from . import bake, rs_tools, scene
+from .scene import InputError
 
-PREVIEW_KEY = "RS Elastic Preview"
+PREVIEW_KEY = bake.PREVIEW_KEY
 
 
 def refresh(obj):
@@ -51,13 +53,14 @@ def show(obj):
     tools = rs_tools.for_object(obj)
     if tools is None:
         return False  # not prepared for this mesh; the panel says so
+    try:
+        scene.require_single_user(obj)
+    except InputError:
+        return False  # linked duplicates: the panel's Prepare already refuses them
     positions = preview_positions(obj, tools)
     key = _preview_key(obj)
     if key is None:
-        if obj.data.shape_keys is None:
-            obj.rs_elastic.preview_made_basis = True
-            obj.shape_key_add(name="Basis", from_mix=False)
-        key = obj.shape_key_add(name=PREVIEW_KEY, from_mix=False)
+        key, = bake.add_owned_keys(obj, [PREVIEW_KEY], "preview")
     key.data.foreach_set("co", positions.astype(np.float32).ravel())
     key.value = 1.0
     obj.data.update()
@@ -65,14 +68,9 @@ def show(obj):
 
 
 def hide(obj):
-    key = _preview_key(obj)
-    if key is not None:
-        obj.shape_key_remove(key)
-    keys = obj.data.shape_keys
-    if obj.rs_elastic.preview_made_basis and keys is not None and len(keys.key_blocks) == 1:
-        obj.shape_key_clear()
-    obj.rs_elastic.preview_made_basis = False
-    obj.data.update()
+    if obj.type == 'MESH':
+        bake.remove_owned_keys(obj, bake.owned_keys(obj, "preview"))
+        obj.data.update()
 
 
 def is_shown(obj):
@@ -80,5 +78,7 @@ def is_shown(obj):
 
 
 def _preview_key(obj):
-    keys = obj.data.shape_keys if obj.type == 'MESH' else None
-    return None if keys is None else keys.key_blocks.get(PREVIEW_KEY)
+    if obj.type != 'MESH':
+        return None
+    owned = bake.owned_keys(obj, "preview")
+    return owned[0] if owned else None

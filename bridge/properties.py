@@ -135,8 +135,6 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Amplitude", default=0.1, soft_min=-1.0, soft_max=1.0, precision=3,
         update=_preview_changed,
         description="Largest displacement of the mode, as a fraction of the bounding-box diagonal")
-    preview_made_basis: BoolProperty(default=False, options={'HIDDEN'},
-                                     description="The preview created the Basis key and removes it")
 
     # --- Space-time editing ---------------------------------------------------------------------------
     handles: CollectionProperty(type=RSElasticHandle)

@@ -1,4 +1,6 @@
 """Read a Blender object into numpy arrays for the solver (main thread only)."""
+import math
+
 import numpy as np
 
 
@@ -17,7 +19,79 @@ def require_mesh_object(obj):
         obj.update_from_editmode()
     if len(obj.data.vertices) == 0 or len(obj.data.polygons) == 0:
         raise InputError(f"'{obj.name}' has an empty mesh (no faces)")
+    require_single_user(obj)
     return obj
+
+
+def require_single_user(obj):
+    """Refuse a mesh shared by linked duplicates: its shape keys belong to every object using
+    it, so one object's bake would replace the other's."""
+    mesh = obj.data
+    users = mesh.users - int(mesh.use_fake_user)
+    if users > 1:
+        raise InputError(f"'{obj.name}' shares its mesh '{mesh.name}' with {users - 1} "
+                         "other object(s): make it single-user first (Object > Relations > "
+                         "Make Single User > Object & Data)")
+
+
+# Modifiers that copy the geometry. The bake lives in the base mesh's shape keys, so a copy can
+# only repeat (or mirror) the base's motion, which is wrong for any asymmetric motion.
+COPYING_MODIFIERS = {'MIRROR', 'ARRAY', 'SCREW', 'PARTICLE_INSTANCE'}
+
+# Limits beyond any real material: above them the solver's numbers are meaningless.
+MATERIAL_LIMITS = {"youngs_modulus": ("Young's modulus", 1e13, "Pa"),
+                   "density": ("Density", 1e6, "kg/m³")}
+
+
+def require_body(obj):
+    """Everything an operator that tetrahedralises, prepares, solves or simulates needs of the
+    object before it reads anything: a single-user mesh object, no modifier that copies its
+    geometry, and finite, physical settings. Raises InputError."""
+    require_mesh_object(obj)
+    for modifier in obj.modifiers:
+        if modifier.type in COPYING_MODIFIERS and (modifier.show_viewport or modifier.show_render):
+            kind = modifier.type.replace("_", " ").title()
+            raise InputError(f"'{obj.name}' has a {kind} modifier ('{modifier.name}'), which "
+                             f"would copy the baked motion: apply the {kind} modifier first")
+    check_settings(obj)
+    return obj
+
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def check_settings(obj):
+    """Refuse non-finite numbers in any setting, and a material beyond MATERIAL_LIMITS."""
+    settings = obj.rs_elastic
+    for struct in [settings, *settings.handles]:
+        for prop in struct.bl_rna.properties:
+            if prop.type == 'FLOAT' and not prop.is_readonly and prop.array_length == 0:
+                value = getattr(struct, prop.identifier)
+                if abs(value) >= FLOAT32_MAX:     # Blender stores an infinity as ±FLOAT32_MAX
+                    value = math.copysign(math.inf, value)
+                if not math.isfinite(value):
+                    raise InputError(f"'{obj.name}': {prop.name} is {value:g}; it must be a "
+                                     "finite number")
+    for name, (label, largest, unit) in MATERIAL_LIMITS.items():
+        value = getattr(settings, name)
+        if not 0.0 < value <= largest:
+            raise InputError(f"{label} must be above 0 and at most {largest:g} {unit}, got "
+                             f"{value:g} {unit}")
+
+
+GRAVITY_LIMIT = 1000.0    # m/s², about 100 g
+
+
+def scene_gravity(blender_scene):
+    """(3,) the scene's gravity (zero when turned off), refused if not finite or beyond 100 g."""
+    if not blender_scene.use_gravity:
+        return np.zeros(3)
+    gravity = np.array(blender_scene.gravity, dtype=np.float64)
+    magnitude = np.linalg.norm(gravity)
+    if not magnitude <= GRAVITY_LIMIT:      # also catches inf and nan
+        raise InputError(f"The scene's gravity is {magnitude:.3g} m/s²; it must be finite and "
+                         f"at most {GRAVITY_LIMIT:g} m/s²")
+    return gravity
 
 
 def active_mesh_or_report(operator, context):

@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import dynamics, fem, materials
-from . import scene, spacetime_inputs
+from . import bake, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -56,7 +56,7 @@ def potential_for(tools, settings):
 
 def gather(obj, blender_scene):
     """Validate and set up the simulation. Raises InputError."""
-    scene.require_mesh_object(obj)
+    scene.require_body(obj)
     tools = spacetime_inputs.prepared_tools(obj)
     settings = obj.rs_elastic
     frames = spacetime_inputs.frame_range(obj, blender_scene)
@@ -64,7 +64,7 @@ def gather(obj, blender_scene):
     free = len(tools.pinned_nodes) == 0
     fps = blender_scene.render.fps / blender_scene.render.fps_base
     h = 1.0 / fps
-    gravity = np.array(blender_scene.gravity) if blender_scene.use_gravity else np.zeros(3)
+    gravity = scene.scene_gravity(blender_scene)
     motion = object_motion(obj, blender_scene, frames)
     scale = np.array(obj.matrix_world.to_scale())
     if np.abs(scale - 1.0).max() > 1e-6:
@@ -104,5 +104,8 @@ def run(job_inputs, job):
     except dynamics.SimulationCancelled:
         raise Cancelled() from None
     if job_inputs.free:   # the floating frame's motion is part of the pose in object space
-        return trajectory.world_positions(job_inputs.rest, job_inputs.rows)
-    return job_inputs.rest[None] + trajectory.body_displacements(job_inputs.rows)
+        poses = trajectory.world_positions(job_inputs.rest, job_inputs.rows)
+    else:
+        poses = job_inputs.rest[None] + trajectory.body_displacements(job_inputs.rows)
+    bake.check_poses(job_inputs.object_name, job_inputs.rest, poses)
+    return poses

@@ -21,6 +21,9 @@ class SpaceTimeJob:
     warnings: list
 
 
+MAX_FRAMES = 10000   # a bake is one shape key per frame: beyond this it is not usable
+
+
 def frame_range(obj, blender_scene):
     settings = obj.rs_elastic
     if settings.use_scene_range:
@@ -29,6 +32,8 @@ def frame_range(obj, blender_scene):
         start, end = settings.frame_start, settings.frame_end
     if end - start + 1 < 3:
         raise InputError(f"The frame range {start}–{end} has fewer than 3 frames")
+    if end - start + 1 > MAX_FRAMES:
+        raise InputError(f"The frame range {start}–{end} has more than {MAX_FRAMES} frames")
     return list(range(start, end + 1))
 
 
@@ -76,7 +81,7 @@ def _key_positions(obj, name):
 
 def gather(obj, blender_scene):
     """Validate and collect everything the solve needs. Raises InputError."""
-    scene.require_mesh_object(obj)
+    scene.require_body(obj)
     tools = prepared_tools(obj)
     settings = obj.rs_elastic
     frames = frame_range(obj, blender_scene)
@@ -157,4 +162,5 @@ def solve(job_inputs, job):
     q = job_inputs.tools.deformer.q_batch(result.inputs)                 # (F, rB)
     displacement = q @ job_inputs.tools.surface_basis.T                    # (F, 3n)
     poses = job_inputs.rest[None] + displacement.reshape(len(q), -1, 3)
+    bake.check_poses(job_inputs.object_name, job_inputs.rest, poses)
     return result, poses

@@ -188,8 +188,8 @@ def test_command_line_bakes_a_saved_file_and_returns_exit_codes(ext, tmp_path):
     assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == list(range(1, 31))
 
     bad = run_cli(blend, ["bake", "--object", "Nobody"])
-    assert bad.returncode == 1
+    assert bad.returncode == 2                                          # a bad argument
     errors = [l for l in bad.stderr.splitlines() if l.startswith("rs_elastic: error:")]
     assert errors == ["rs_elastic: error: no object named 'Nobody' in " + str(blend)]
     assert run_cli(blend, ["bake"]).returncode == 2                    # --object is required
-    assert run_cli(blend, ["bake", "--object", "Bar", "--frames", "9-3"]).returncode == 1
+    assert run_cli(blend, ["bake", "--object", "Bar", "--frames", "9-3"]).returncode == 2
