@@ -109,6 +109,94 @@ def fingerprint(obj):
     return h.hexdigest()
 
 
+# Results the operators write on success; everything else in obj.rs_elastic is the user's.
+RESULT_SETTINGS = {"tet_node_count", "tet_count", "tets_key", "prepared_key", "reduced_key",
+                   "reduced_basis_count", "cubature_count", "mode_results", "mnf",
+                   "solve_history", "residual", "preview_made_basis", "use_take"}
+
+
+def _rna_values(struct, skip=()):
+    """Plain values of a struct's editable properties (pointers by name, collections flattened)."""
+    values = []
+    for prop in struct.bl_rna.properties:
+        if prop.identifier in ("rna_type", "name") or prop.identifier in skip:
+            continue
+        value = getattr(struct, prop.identifier)
+        if prop.type == 'POINTER':
+            value = getattr(value, "name", None) if isinstance(value, bpy.types.ID) else None
+        elif prop.type == 'COLLECTION':
+            value = [_rna_values(item, skip) for item in value]
+        elif getattr(prop, "is_array", False):
+            value = tuple(value)
+        values.append((prop.identifier, value))
+    return values
+
+
+def _curves(id_block, skip_paths=()):
+    """(data path, index, keyframes) of every F-curve animating `id_block`."""
+    anim = id_block.animation_data
+    if anim is None or anim.action is None:
+        return []
+    action = anim.action
+    if hasattr(action, "layers"):
+        from bpy_extras import anim_utils
+        bag = (anim_utils.action_get_channelbag_for_slot(action, anim.action_slot)
+               if anim.action_slot is not None else None)
+        curves = [] if bag is None else bag.fcurves
+    else:
+        curves = action.fcurves
+    rows = []
+    for curve in curves:
+        if curve.data_path in skip_paths:
+            continue
+        co = np.empty(len(curve.keyframe_points) * 2)
+        curve.keyframe_points.foreach_get("co", co)
+        rows.append((curve.data_path, curve.array_index, co.tobytes()))
+    return sorted(rows)
+
+
+def _is_extension_key(keys, block):
+    tags = keys.get("rs_elastic")
+    return tags is not None and block.name in tags.keys()
+
+
+def user_fingerprint(obj=None):
+    """Hash of everything the user owns, which the extension must never change: each object's
+    transform, modifiers, vertex groups and its animation; each mesh's vertices, faces and the
+    user's shape keys (name, value, mute, relative key, data and keyframes); obj.rs_elastic's
+    settings (not the results operators write). Keys the extension tagged as its own are left
+    out, so a bake and its Clear Bake must leave the fingerprint as it was. `obj` is accepted
+    for symmetry with `fingerprint`; every object in the file is covered."""
+    h = hashlib.sha256()
+    for other in sorted(bpy.data.objects, key=lambda o: o.name):
+        h.update(repr((other.name, other.type, tuple(map(tuple, other.matrix_world)),
+                       other.parent.name if other.parent else None,
+                       [(m.name, m.type, m.show_viewport) for m in other.modifiers],
+                       [g.name for g in other.vertex_groups], _curves(other))).encode())
+        if other.type != 'MESH':
+            continue
+        mesh = other.data
+        h.update(mesh.name.encode() + vertices(other).tobytes())
+        h.update(repr([p.vertices[:] for p in mesh.polygons]).encode())
+        h.update(repr([[(g.group, g.weight) for g in v.groups] for v in mesh.vertices]).encode())
+        keys = mesh.shape_keys
+        if keys is not None:
+            own = [b for b in keys.key_blocks if _is_extension_key(keys, b)]
+            skip = {f'key_blocks["{b.name}"].value' for b in own}
+            for block in keys.key_blocks:
+                if block in own:
+                    continue
+                co = np.empty(len(block.data) * 3)
+                block.data.foreach_get("co", co)
+                h.update(repr((block.name, block.value, block.mute, block.relative_key.name,
+                               block.slider_min, block.slider_max)).encode() + co.tobytes())
+            curves = _curves(keys, skip)
+            if curves:
+                h.update(repr(curves).encode())
+        h.update(repr(_rna_values(other.rs_elastic, RESULT_SETTINGS)).encode())
+    return h.hexdigest()
+
+
 def diagonal(points):
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
