@@ -236,7 +236,8 @@ def _modifier_stack(obj):
             elif getattr(prop, "is_array", False):
                 value = tuple(value)
             values.append((prop.identifier, value))
-        values += [(k, repr(m[k])) for k in m.keys()]     # geometry-node inputs
+        if m.type == 'NODES':
+            values += [(k, repr(m[k])) for k in m.keys()]     # the node group's inputs
         parts.append((m.type, m.name, values))
     return repr(parts)
 
@@ -646,8 +647,14 @@ def load_prepared(obj):
         return None
     for message in job.warnings:
         print(f"RS Elastic: {message}")
-    if body.keys != (settings.tets_key, settings.prepared_key, settings.reduced_key):
+    if body.keys[:2] != (settings.tets_key, settings.prepared_key):
         return None
+    if body.keys[2] != settings.reduced_key:
+        # Same inputs, but recomputed modes need not be bit-identical (eigensolver signs), so
+        # the deformer built on them gets another content key: it is the one to use now.
+        settings.reduced_key = body.keys[2]
+        settings.reduced_basis_count = body.deformer.basis_size
+        settings.cubature_count = len(body.deformer.cubature_tets)
     return body
 
 
