@@ -129,6 +129,8 @@ def test_the_same_file_bakes_the_same_twice_in_one_process_and_in_a_new_one(ext,
     for a, b in zip(first[2], second[2]):
         np.testing.assert_array_equal(a, b)                          # bit for bit
     for a, c in zip(first[2], third[2]):
+        print(f"new process: largest difference {np.abs(a - c).max():.3g} m "
+              f"(bound {1e-10 * size:.3g} m)")
         assert np.abs(a - c).max() <= 1e-10 * size
         assert np.abs(a - a[0]).max() > 1e-3 * size                  # a bake that moves
 
@@ -143,5 +145,7 @@ def test_a_farm_without_the_cache_folder_bakes_the_same(ext, tmp_path, recorder)
                                           output=tmp_path / "farm.blend")
     assert stats.get("tetrahedralize", 0) == 0 and stats["modes"] == 1
     assert len(bakes) == 1
+    print(f"farm: largest difference {np.abs(bakes[0] - here).max():.3g} m "
+          f"(bound {1e-10 * size:.3g} m)")
     assert np.abs(bakes[0] - here).max() <= 1e-10 * size
     assert np.abs(here - here[0]).max() > 1e-3 * size
