@@ -312,11 +312,14 @@ def test_panel_stale_check_cost_on_a_50k_vertex_mesh(ext):
     for _ in range(100):
         assert bodies.stale_reason(obj, cached=True) is None
     cached = (time.perf_counter() - t0) / 100
-    print(f"stale check on {len(obj.data.vertices)} vertices: {1e3 * fresh:.1f} ms fresh, "
-          f"{1e3 * cached:.3f} ms cached (per draw)")
     obj.data.vertices[0].co.z += 0.1
     obj.data.update()
     bpy.context.view_layer.update()
+    t0 = time.perf_counter()
     assert bodies.stale_reason(obj, cached=True) == ("the mesh's vertices moved since Prepare "
                                                      "Body: prepare again")
+    after_edit = time.perf_counter() - t0
+    print(f"stale check on {len(obj.data.vertices)} vertices: {1e3 * fresh:.1f} ms fresh, "
+          f"{1e3 * cached:.3f} ms per draw cached, {1e3 * after_edit:.1f} ms on the first draw "
+          "after an edit")
     assert cached < 2e-3
