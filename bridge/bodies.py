@@ -693,3 +693,20 @@ def load_tet_body(obj):
     if stored is not None:
         return TetBody(stored[0], stored[1], None)
     return _read_file(cache_dirs(), obj.name, "tets", key, "", lambda message: None)
+
+
+def load_pinned_nodes(obj):
+    """(p,) tet nodes the prepared modes hold fixed, or None. Safe in draw (no recomputing)."""
+    key = obj.rs_elastic.prepared_key
+    entry = _MEMORY.get(key)
+    if entry is not None:
+        return entry[0].pinned_nodes
+    for folder in cache_dirs():
+        try:
+            arrays = cache.load(cache_file(folder, obj.name, "modes", key), key)
+        except cache.CacheCorrupt:
+            continue
+        pins = None if arrays is None else arrays.get("pinned_nodes")
+        if pins is not None and pins.dtype.kind in "iu" and pins.ndim == 1:
+            return pins
+    return None
