@@ -169,7 +169,7 @@ def user_fingerprint(obj=None):
     for symmetry with `fingerprint`; every object in the file is covered."""
     h = hashlib.sha256()
     for other in sorted(bpy.data.objects, key=lambda o: o.name):
-        h.update(repr((other.name, other.type, tuple(map(tuple, other.matrix_world)),
+        h.update(repr((other.name, other.type, tuple(map(tuple, other.matrix_basis)),
                        other.parent.name if other.parent else None,
                        [(m.name, m.type, m.show_viewport) for m in other.modifiers],
                        [g.name for g in other.vertex_groups], _curves(other))).encode())
