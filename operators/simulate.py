@@ -2,7 +2,7 @@
 import bpy
 import numpy as np
 
-from ..bridge import bake, bodies, jobs, scene, simulation_inputs
+from ..bridge import bake, jobs, simulation_inputs
 
 
 class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
@@ -13,9 +13,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def make_work(self, context):
-        obj = scene.require_mesh_object(context.active_object)
-        bodies.require_current(obj)
-        inputs = simulation_inputs.gather(obj, context.scene)
+        inputs = simulation_inputs.gather(context.active_object, context.scene)
         self._inputs = inputs
         return lambda job: simulation_inputs.run(inputs, job)
 
