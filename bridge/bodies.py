@@ -3,17 +3,29 @@
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
 Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
 Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates).
+
+Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
+key hashes the tet mesh *actually used* (its arrays) with the material and pins; the reduced key
+hashes the modes' arrays with the reduced settings. So stages of different runs can never mix.
 Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.<key>.npz` (the temp folder for
-an unsaved file). The key hashes everything the stage depends on, so a stale file is never used,
-and a new preparation writes new files beside the old ones: an unfinished or cancelled one leaves
-the previous cache usable. Files of keys the object no longer uses are pruned once a preparation
-is applied. An unreadable file is reported and rebuilt.
+an unsaved file); a new preparation writes new files beside the old ones, so a cancelled one
+leaves the previous cache usable. Every loaded array is validated; on any doubt the file is
+rebuilt with one warning.
+
+The tet mesh itself travels with the .blend (`obj.rs_elastic["tet_mesh"]`, with the tets key it
+was made for), because fTetWild is not deterministic: re-preparing the same file, in any process
+and without the cache folder, reuses it, and only a new surface or new mesher settings replace it.
+
+Staleness: Prepare records a fingerprint of what it read (mesh, modifiers, pins, settings) in
+`obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares it with the object now.
 """
 import collections
 import dataclasses
 import functools
+import json
 import os
 import re
+import shutil
 import tempfile
 
 import bpy
@@ -22,14 +34,17 @@ import scipy.sparse as sp
 
 from ..solver import cache, embed, fem, modes, reduced, rs, tetmesh
 from . import scene
-from .jobs import Cancelled
+from .jobs import Cancelled, Job
 from .scene import InputError
 
 # How often each stage really ran in this process (the tests read these to prove cache reuse).
 stats = collections.Counter()
 
-_MEMORY = collections.OrderedDict()   # cache key -> TetBody, LinearModes or ReducedRS
+_MEMORY = collections.OrderedDict()   # cache key -> (value, parent digest)
 _MEMORY_LIMIT = 16
+
+TET_MESH = "tet_mesh"                 # obj.rs_elastic[TET_MESH]: {"key", "nodes", "tets"}
+PREPARED_INPUTS = "prepared_inputs"   # obj.rs_elastic[PREPARED_INPUTS]: the fingerprint at Prepare
 
 
 @dataclasses.dataclass
@@ -46,8 +61,8 @@ class TetBody:
     @classmethod
     def from_arrays(cls, a):
         Phi = sp.csr_matrix((a["phi_data"], a["phi_indices"], a["phi_indptr"]),
-                            shape=tuple(a["phi_shape"]))
-        return cls(a["nodes"], a["tets"], Phi)
+                            shape=tuple(int(n) for n in a["phi_shape"]))
+        return cls(a["nodes"], a["tets"].astype(np.int64), Phi)
 
 
 @dataclasses.dataclass
@@ -55,6 +70,7 @@ class PreparedBody:
     tet_body: TetBody
     linear_modes: modes.LinearModes
     deformer: reduced.ReducedRS = None      # None for a body prepared before reduced RS existed
+    keys: tuple = ("", "", "")               # (tets, modes, reduced) keys it was made under
 
     def surface_mode(self, index):
         """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
@@ -68,7 +84,26 @@ def _modes_to_arrays(m):
 
 def _modes_from_arrays(a):
     return modes.LinearModes(eigenvalues=a["eigenvalues"], vectors=a["vectors"],
-                             pinned_nodes=a["pinned_nodes"])
+                             pinned_nodes=a["pinned_nodes"].astype(np.int64))
+
+
+# What a stage's file must hold; sizes with the same name must agree (see cache.validate).
+_SCHEMAS = {
+    "tets": {"nodes": ("f", ("N", 3)), "tets": ("iu", ("E", 4)), "phi_data": ("f", ("nnz",)),
+             "phi_indices": ("iu", ("nnz",)), "phi_indptr": ("iu", (None,)),
+             "phi_shape": ("iu", (2,))},
+    "modes": {"eigenvalues": ("f", ("r",)), "vectors": ("f", (None, "r")),
+              "pinned_nodes": ("iu", (None,))},
+    "reduced": {"cubature_tets": ("iu", ("C",)), "cubature_weights": ("f", ("C",)),
+                "projections": ("f", (None, None, None)), "modal_rs_cubature": ("f", (None, None, None)),
+                "linear_map": ("f", (None, None))},
+}
+
+
+def digest(stage, value):
+    """Content hash of a stage's value: what the next stage's key is made of."""
+    arrays = _to_arrays(stage, value)
+    return cache.content_key(stage, *(np.asarray(arrays[name]) for name in sorted(arrays)))
 
 
 # --- where the cache lives ------------------------------------------------------------------------
@@ -91,7 +126,11 @@ def cache_file(folder, object_name, stage, key):
 
 
 def prune(obj):
-    """Delete the object's cache files whose key it no longer uses (in its primary folder)."""
+    """Delete the object's cache files whose key it no longer uses (in its primary folder).
+
+    An undo can bring back a key whose files are gone: `load_prepared` then recomputes them
+    (the tet mesh is kept in the .blend, so the recomputed stages have the same keys).
+    """
     settings = obj.rs_elastic
     keep = {cache_file(cache_dirs()[0], obj.name, stage, key)
             for stage, key in _stage_keys(settings) if key}
@@ -123,12 +162,200 @@ def _to_arrays(stage, value):
     return value.save_arrays()
 
 
-def _from_arrays(stage, arrays):
-    if stage == "tets":
-        return TetBody.from_arrays(arrays)
-    if stage == "modes":
-        return _modes_from_arrays(arrays)
-    return reduced.ReducedRS.from_arrays(arrays)
+def _from_arrays(stage, arrays, path):
+    """The stage's value from validated arrays; CacheCorrupt on any doubt."""
+    sizes = cache.validate(arrays, _SCHEMAS[stage], path)
+    try:
+        if stage == "tets":
+            if (arrays["tets"].min(initial=0) < 0 or arrays["tets"].max(initial=0) >= sizes["N"]
+                    or tuple(arrays["phi_shape"])[1] != sizes["N"]):
+                raise ValueError("tet indices out of range")
+            return TetBody.from_arrays(arrays)
+        if stage == "modes":
+            return _modes_from_arrays(arrays)
+        return reduced.ReducedRS.from_arrays(arrays)
+    except (KeyError, ValueError, IndexError, TypeError) as exc:
+        raise cache.CacheCorrupt(f"cache file {path} is inconsistent ({exc})") from None
+
+
+# --- the tet mesh kept in the .blend (main thread) --------------------------------------------------
+
+def stored_tet_mesh(obj, key):
+    """(nodes (N, 3) float64, tets (E, 4) int64) kept in the object for this tets key, or None."""
+    group = obj.rs_elastic.get(TET_MESH)
+    if group is None or group.get("key") != key:
+        return None
+    try:
+        nodes = np.array(group["nodes"], dtype=np.float64).reshape(-1, 3)
+        tets = np.array(group["tets"], dtype=np.int64).reshape(-1, 4)
+    except (KeyError, ValueError, TypeError):
+        return None
+    if (len(tets) == 0 or not np.all(np.isfinite(nodes)) or tets.min() < 0
+            or tets.max() >= len(nodes)):
+        return None
+    return nodes, tets
+
+
+def store_tet_mesh(obj, key, tet_body):
+    """Keep the tet mesh in the object (undoable, per object: linked duplicates may differ)."""
+    kept = stored_tet_mesh(obj, key)
+    if (kept is not None and np.array_equal(kept[0], tet_body.nodes)
+            and np.array_equal(kept[1], tet_body.tets)):
+        return
+    # float64 and int32 arrays go into ID properties through the buffer protocol (milliseconds).
+    obj.rs_elastic[TET_MESH] = {
+        "key": key, "nodes": np.ascontiguousarray(tet_body.nodes, dtype=np.float64).ravel(),
+        "tets": np.ascontiguousarray(tet_body.tets, dtype=np.int32).ravel()}
+
+
+def forget_prepared(obj):
+    """Drop the record of a preparation (its keys stay in settings until the caller clears them)."""
+    if obj.rs_elastic.get(PREPARED_INPUTS) is not None:
+        del obj.rs_elastic[PREPARED_INPUTS]
+
+
+# --- what Prepare read, and whether it still holds (main thread) ------------------------------------
+
+_SKIPPED_MODIFIER_PROPS = {"rna_type", "name", "show_expanded", "is_active", "show_in_editmode",
+                           "show_on_cage", "show_render", "use_pin_to_last", "persistent_uid",
+                           "is_override_data_editable", "execution_time", "use_apply_on_spline"}
+
+
+def _modifier_stack(obj):
+    """A text describing the modifier stack: every modifier's type and settings."""
+    parts = []
+    for m in obj.modifiers:
+        values = []
+        for prop in m.bl_rna.properties:
+            if prop.identifier in _SKIPPED_MODIFIER_PROPS or prop.is_readonly \
+                    or prop.type == 'COLLECTION':
+                continue
+            value = getattr(m, prop.identifier, None)
+            if prop.type == 'POINTER':
+                value = getattr(value, "name", None)
+            elif getattr(prop, "is_array", False):
+                value = tuple(value)
+            values.append((prop.identifier, value))
+        if m.type == 'NODES':
+            values += [(k, repr(m[k])) for k in m.keys()]     # the node group's inputs
+        parts.append((m.type, m.name, values))
+    return repr(parts)
+
+
+def pin_weights(obj, group_name):
+    """(n,) float32 weights of the named vertex group over the base vertices (0 outside it).
+
+    Blender has no bulk accessor for group weights, so this walks the memberships once.
+    """
+    group = obj.vertex_groups.get(group_name)
+    if group is None:
+        raise InputError(f"Pin group '{group_name}' does not exist on '{obj.name}'")
+    index = group.index
+    weights = np.zeros(len(obj.data.vertices), dtype=np.float32)
+    for v in obj.data.vertices:
+        for g in v.groups:
+            if g.group == index:
+                weights[v.index] = g.weight
+    return weights
+
+
+def _geometry_fingerprint(obj):
+    """The costly part of the fingerprint: vertices, faces, modifiers, pin weights (hashes)."""
+    mesh = obj.data
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    corners = np.empty(len(mesh.loops), dtype=np.int32)
+    corner_vert = mesh.attributes.get(".corner_vert")     # 100× faster than mesh.loops
+    if corner_vert is not None:
+        corner_vert.data.foreach_get("value", corners)
+    else:
+        mesh.loops.foreach_get("vertex_index", corners)
+    sizes = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_start", sizes)
+    group = obj.rs_elastic.pin_group
+    if not group:
+        pins = "free"
+    elif obj.vertex_groups.get(group) is None:
+        pins = "missing"
+    else:
+        pins = cache.content_key(pin_weights(obj, group))
+    return {"vertex count": str(len(mesh.vertices)), "faces": cache.content_key(corners, sizes),
+            "vertices": cache.content_key(co), "modifiers": cache.content_key(_modifier_stack(obj)),
+            "pin group": pins}
+
+
+def _settings_fingerprint(settings):
+    return {"tet mesh settings": repr((settings.edge_length, settings.envelope)),
+            "material": repr((settings.youngs_modulus, settings.poisson_ratio, settings.density)),
+            "number of modes": repr(settings.num_modes),
+            "reduced RS settings": repr((settings.basis_size, settings.cubature_tets,
+                                         settings.cubature_tolerance, settings.training_poses))}
+
+
+_GEOMETRY = {}   # object pointer -> (pin group name, its index, geometry fingerprint), for draw
+
+
+def fingerprint(obj, cached=False):
+    """dict component -> text/hash of everything Prepare reads. `cached` reuses the geometry
+    part until a depsgraph update of the object or its mesh (for the panel, which runs in draw)."""
+    settings = obj.rs_elastic
+    group = obj.vertex_groups.get(settings.pin_group) if settings.pin_group else None
+    mesh = obj.data
+    tag = (settings.pin_group, None if group is None else group.index, len(mesh.vertices),
+           len(mesh.polygons), len(obj.modifiers))
+    entry = _GEOMETRY.get(obj.as_pointer()) if cached else None
+    if entry is None or entry[0] != tag:
+        entry = _GEOMETRY[obj.as_pointer()] = (tag, _geometry_fingerprint(obj))
+    return {**entry[1], **_settings_fingerprint(settings)}
+
+
+def forget_fingerprints(depsgraph_updates):
+    """Drop cached geometry fingerprints of objects whose geometry or settings changed."""
+    for update in depsgraph_updates:
+        if isinstance(update.id, (bpy.types.Mesh, bpy.types.Object)) and (
+                update.is_updated_geometry or isinstance(update.id, bpy.types.Mesh)):
+            _GEOMETRY.clear()     # cheap to rebuild for the few objects a panel shows
+            return
+
+
+def _what_changed(obj, before, now):
+    """What to tell the user about the first component that differs, or None."""
+    for name, value in now.items():
+        if before.get(name) == value:
+            continue
+        if name == "pin group" and value == "missing":
+            return (f"pin group '{obj.rs_elastic.pin_group}' no longer exists (renamed or deleted "
+                    "since Prepare Body): set Pin Group and prepare again")
+        if name == "vertex count":
+            what = f"the vertex count changed since Prepare Body ({before.get(name)} → {value})"
+        elif name == "vertices":
+            what = "the mesh's vertices moved since Prepare Body"
+        else:
+            what = f"the {name} changed since Prepare Body"
+        return what + ": prepare again"
+    return None
+
+
+def stale_reason(obj, cached=False):
+    """Why the prepared body no longer matches the object, in words, or None if it does."""
+    settings = obj.rs_elastic
+    if not settings.is_prepared:
+        return None
+    record = settings.get(PREPARED_INPUTS)
+    if record is None:
+        return "it was prepared by an older version of RS Elastic: prepare again"
+    return _what_changed(obj, json.loads(record), fingerprint(obj, cached=cached))
+
+
+def require_current(obj):
+    """Raise InputError saying what changed if the object's preparation is stale."""
+    reason = stale_reason(obj)
+    if reason:
+        raise InputError(f"'{obj.name}': {reason}")
+
+
+def record_prepared(obj, prepared_fingerprint):
+    obj.rs_elastic[PREPARED_INPUTS] = json.dumps(prepared_fingerprint, sort_keys=True)
 
 
 # --- inputs, read on the main thread ----------------------------------------------------------------
@@ -136,13 +363,16 @@ def _from_arrays(stage, arrays):
 @dataclasses.dataclass
 class BodyInputs:
     object_name: str
-    surface_vertices: np.ndarray   # evaluated mesh, object space
+    surface_vertices: np.ndarray   # evaluated mesh without shape keys, object space
     surface_triangles: np.ndarray
     base_vertices: np.ndarray      # the mesh's own vertices
     edge_length: float
     envelope: float
     cache_dirs: list
-    pin_mask: np.ndarray = None    # (n,) bool over base vertices, None for a free body
+    base_triangles: np.ndarray = None   # (t, 3) triangles of the base mesh (the pin rule reads them)
+    pin_weights: np.ndarray = None      # (n,) float32 in [0, 1], None for a free body
+    stored_tets: tuple = None      # (nodes, tets) kept in the .blend for tets_key, or None
+    fingerprint: dict = None       # what Prepare read (see `fingerprint`)
     youngs: float = 0.0
     poisson: float = 0.0
     density: float = 0.0
@@ -157,29 +387,53 @@ class BodyInputs:
         return cache.content_key("tets", self.surface_vertices, self.surface_triangles,
                                  self.base_vertices, self.edge_length, self.envelope)
 
-    @functools.cached_property
-    def modes_key(self):
-        pins = self.pin_mask if self.pin_mask is not None else "free"
-        return cache.content_key("modes", self.tets_key, pins, self.youngs, self.poisson,
+    def modes_key(self, tets_digest):
+        """Key of the modes of the tet mesh whose arrays hash to tets_digest."""
+        pins = ("surface pins", self.pin_weights, self.base_triangles) \
+            if self.pin_weights is not None else "free"
+        return cache.content_key("modes", tets_digest, pins, self.youngs, self.poisson,
                                  self.density, self.num_modes)
 
-    @functools.cached_property
-    def reduced_key(self):
-        return cache.content_key("reduced", self.modes_key, self.basis_size, self.cubature_tets,
+    def reduced_key(self, modes_digest):
+        return cache.content_key("reduced", modes_digest, self.basis_size, self.cubature_tets,
                                  self.cubature_tolerance, self.training_poses)
+
+
+def rest_surface(obj, depsgraph):
+    """The evaluated surface (modifiers applied) without shape keys: bakes and previews are
+    shape keys, and the tet mesh must not depend on the frame they play."""
+    if obj.data.shape_keys is None:
+        return scene.evaluated_triangles(obj, depsgraph)
+    saved = obj.show_only_shape_key, obj.active_shape_key_index
+    obj.show_only_shape_key, obj.active_shape_key_index = True, 0   # the reference key alone
+    try:
+        depsgraph.update()
+        return scene.evaluated_triangles(obj, depsgraph)
+    finally:
+        obj.show_only_shape_key, obj.active_shape_key_index = saved
+        depsgraph.update()
+
+
+def _base_triangles(obj):
+    mesh = obj.data
+    mesh.calc_loop_triangles()
+    F = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("vertices", F)
+    return F.reshape(-1, 3)
 
 
 def read_inputs(obj, depsgraph, with_material=True):
     """Validate the object and snapshot everything the stages need. Raises InputError."""
     scene.require_body(obj)
     settings = obj.rs_elastic
-    V, F = scene.evaluated_triangles(obj, depsgraph)
+    V, F = rest_surface(obj, depsgraph)
     try:
         tetmesh.check_surface(V, F)
     except tetmesh.TetMeshError as exc:
         raise InputError(f"'{obj.name}': {exc}") from None
     inputs = BodyInputs(obj.name, V, F, scene.base_vertices(obj), settings.edge_length,
                         settings.envelope, cache_dirs())
+    inputs.stored_tets = stored_tet_mesh(obj, inputs.tets_key)
     if not with_material:
         return inputs
     try:
@@ -189,14 +443,16 @@ def read_inputs(obj, depsgraph, with_material=True):
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if settings.pin_group:
-        mask = scene.vertex_group_mask(obj, settings.pin_group)
-        if not mask.any():
+        weights = np.clip(pin_weights(obj, settings.pin_group), 0.0, 1.0)
+        if not weights.any():
             raise InputError(f"Pin group '{settings.pin_group}' has no vertices; "
                              "clear Pin Group for a free body")
-        if mask.all():
+        if weights.all():
             raise InputError(f"Every vertex of '{obj.name}' is in pin group "
                              f"'{settings.pin_group}': nothing is left free to move")
-        inputs.pin_mask = mask
+        inputs.pin_weights = weights
+        inputs.base_triangles = _base_triangles(obj)
+    inputs.fingerprint = fingerprint(obj)
     inputs.youngs = settings.youngs_modulus
     inputs.poisson = settings.poisson_ratio
     inputs.density = settings.density
@@ -210,80 +466,107 @@ def read_inputs(obj, depsgraph, with_material=True):
 
 # --- the stages (worker-thread safe: no bpy) --------------------------------------------------------
 
-def _remember(key, value):
-    _MEMORY[key] = value
+def _remember(key, value, parent):
+    _MEMORY[key] = (value, parent)
     _MEMORY.move_to_end(key)
     while len(_MEMORY) > _MEMORY_LIMIT:
         _MEMORY.popitem(last=False)
 
 
-def _load_cached(inputs, stage, key, job):
-    """Arrays of a valid cache file for this key, or None. Corrupt files are reported and removed."""
-    for folder in inputs.cache_dirs:
-        path = cache_file(folder, inputs.object_name, stage, key)
+def _read_file(folders, object_name, stage, key, parent, warn):
+    """A valid cached value for this key (and parent digest), or None. A damaged file is
+    reported once through warn() and removed, so it is rebuilt."""
+    for folder in folders:
+        path = cache_file(folder, object_name, stage, key)
         try:
             arrays = cache.load(path, key)
+            if arrays is None:
+                continue
+            if str(arrays.pop("parent_digest", "")) != parent:
+                continue     # made from other contents: not ours (cannot happen by key alone)
+            value = _from_arrays(stage, arrays, path)
         except cache.CacheCorrupt as exc:
-            job.warn(f"{exc}; rebuilding it")
+            warn(f"{exc}; rebuilding it")
             try:
                 os.remove(path)
             except OSError:
                 pass
             continue
-        if arrays is not None:
-            stats[f"{stage}_cache_hits"] += 1
-            return arrays
+        stats[f"{stage}_cache_hits"] += 1
+        return value
     return None
 
 
-def _save_cached(inputs, stage, key, arrays, job):
+def _save_cached(inputs, stage, key, value, parent, job):
     path = cache_file(inputs.cache_dirs[0], inputs.object_name, stage, key)
     try:
-        cache.save(path, key, arrays)
+        cache.save(path, key, dict(_to_arrays(stage, value), parent_digest=np.array(parent)))
     except OSError as exc:
         job.warn(f"Could not write the cache {path}: {exc}")
 
 
-def _cached_stage(inputs, stage, key, compute, job):
-    """A stage's value: from memory, else its valid cache file, else compute() (then saved)."""
-    if key in _MEMORY:
-        return _MEMORY[key]
-    arrays = _load_cached(inputs, stage, key, job)
-    if arrays is not None:
-        value = _from_arrays(stage, arrays)
-    else:
+def _cached_stage(inputs, stage, key, parent, compute, job, accept=lambda value: True):
+    """A stage's value: from memory, else its valid cache file, else compute() (then saved).
+    `parent` is the digest of what it is computed from; `accept` rejects a value on doubt."""
+    entry = _MEMORY.get(key)
+    value = entry[0] if entry is not None and entry[1] == parent else None
+    if value is None or not accept(value):
+        value = _read_file(inputs.cache_dirs, inputs.object_name, stage, key, parent, job.warn)
+    if value is None or not accept(value):
         value = compute()
-        _save_cached(inputs, stage, key, _to_arrays(stage, value), job)
-    _remember(key, value)
+        _save_cached(inputs, stage, key, value, parent, job)
+    _remember(key, value, parent)
     return value
 
 
 def tet_stage(inputs, job):
-    """The tet mesh and embedding for these inputs: from memory, the disk cache, or fTetWild."""
+    """The tet mesh and embedding: the one kept in the .blend if any (embedded again when no
+    cache file has it), else from memory, the disk cache, or fTetWild."""
+    stored = inputs.stored_tets
+
+    def same_as_stored(tet_body):
+        return stored is None or (np.array_equal(tet_body.nodes, stored[0])
+                                  and np.array_equal(tet_body.tets, stored[1]))
+
     def compute():
-        job.step(0.05, "Tetrahedralising with fTetWild")
-        stats["tetrahedralize"] += 1
-        try:
-            X, T = tetmesh.tetrahedralize(inputs.surface_vertices, inputs.surface_triangles,
-                                          edge_length_fac=inputs.edge_length,
-                                          epsilon=inputs.envelope,
-                                          should_cancel=job.is_cancelled)
-        except tetmesh.TetMeshError as exc:
-            if job.is_cancelled():
-                raise Cancelled() from None
-            raise InputError(f"Tetrahedralisation of '{inputs.object_name}' failed: {exc}") from None
+        if stored is not None:
+            X, T = stored
+        else:
+            job.step(0.05, "Tetrahedralising with fTetWild")
+            stats["tetrahedralize"] += 1
+            try:
+                X, T = tetmesh.tetrahedralize(inputs.surface_vertices, inputs.surface_triangles,
+                                              edge_length_fac=inputs.edge_length,
+                                              epsilon=inputs.envelope,
+                                              should_cancel=job.is_cancelled)
+            except tetmesh.TetMeshError as exc:
+                if job.is_cancelled():
+                    raise Cancelled() from None
+                raise InputError(f"Tetrahedralisation of '{inputs.object_name}' failed: {exc}") from None
         job.step(0.45, "Embedding the mesh in the tets")
         return TetBody(X, T, embed.embed_points(X, T, inputs.base_vertices))
 
-    return _cached_stage(inputs, "tets", inputs.tets_key, compute, job)
+    return _cached_stage(inputs, "tets", inputs.tets_key, "", compute, job, same_as_stored)
 
 
-def modes_stage(inputs, tet_body, job):
+def _pinned_nodes(inputs, tet_body):
+    """Tet nodes held by the pin group's weights (the rule is embed.pinned_nodes_from_surface)."""
+    X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
+    from_surface = getattr(embed, "pinned_nodes_from_surface", None)
+    if from_surface is None:   # TEMPORARY fallback until the solver branch lands: drop at merge
+        return embed.pinned_nodes_from_vertices(Phi, inputs.pin_weights > 0.0)
+    return from_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
+                        inputs.pin_weights, threshold=0.5)
+
+
+def modes_stage(inputs, tet_body, job, tets_digest=None):
     """Linear modes for the material and pins: from memory, the disk cache, or eigsh."""
+    tets_digest = tets_digest or digest("tets", tet_body)
+
     def compute():
         pinned = None
-        if inputs.pin_mask is not None:
-            pinned = embed.pinned_nodes_from_vertices(tet_body.embedding, inputs.pin_mask)
+        if inputs.pin_weights is not None:
+            pinned = _pinned_nodes(inputs, tet_body)
             if len(pinned) >= len(tet_body.nodes):
                 raise InputError(f"The pins of '{inputs.object_name}' hold every tet node: "
                                  "nothing is left free to move")
@@ -297,11 +580,17 @@ def modes_stage(inputs, tet_body, job):
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
 
-    return _cached_stage(inputs, "modes", inputs.modes_key, compute, job)
+    def fits(m):
+        return m.vectors.shape[0] == 3 * len(tet_body.nodes)
+
+    return _cached_stage(inputs, "modes", inputs.modes_key(tets_digest), tets_digest, compute,
+                         job, fits)
 
 
-def reduced_stage(inputs, tet_body, linear_modes, job):
+def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None):
     """The reduced RS deformer: from memory, the disk cache, or basis + cubature training."""
+    modes_digest = modes_digest or digest("modes", linear_modes)
+
     def compute():
         X, T = tet_body.nodes, tet_body.tets
         pinned = linear_modes.pinned_nodes
@@ -316,68 +605,108 @@ def reduced_stage(inputs, tet_body, linear_modes, job):
             progress=lambda f, message: job.step(0.72 + 0.27 * f, f"Reduced RS: {message}"))
         return deformer
 
-    return _cached_stage(inputs, "reduced", inputs.reduced_key, compute, job)
+    def fits(d):
+        return d.basis is None or d.basis.shape[0] == 3 * len(tet_body.nodes)
+
+    return _cached_stage(inputs, "reduced", inputs.reduced_key(modes_digest), modes_digest,
+                         compute, job, fits)
 
 
 def prepare(inputs, job):
-    """All three stages; returns a PreparedBody."""
+    """All three stages, each keyed by the contents of the one before; returns a PreparedBody."""
     tet_body = tet_stage(inputs, job)
-    linear_modes = modes_stage(inputs, tet_body, job)
-    deformer = reduced_stage(inputs, tet_body, linear_modes, job)
+    tets_digest = digest("tets", tet_body)
+    linear_modes = modes_stage(inputs, tet_body, job, tets_digest)
+    modes_digest = digest("modes", linear_modes)
+    deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest)
     job.step(1.0, "Done")
-    return PreparedBody(tet_body, linear_modes, deformer)
+    keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
+    return PreparedBody(tet_body, linear_modes, deformer, keys)
 
 
 # --- for the preview and later operators -------------------------------------------------------------
 
 def load_prepared(obj):
-    """The PreparedBody the object was last prepared with, or None if it cannot be found."""
+    """The PreparedBody the object was last prepared with, or None if it is stale or cannot be
+    rebuilt under the same keys.
+
+    The stages are looked up again from the object's current inputs (memory, then files), so
+    files that were pruned (an undo brought back an older preparation) are quietly recomputed;
+    the result is used only if it lands on exactly the keys the object records.
+    """
     settings = obj.rs_elastic
-    if not settings.prepared_key:
+    if not settings.prepared_key or stale_reason(obj, cached=True):
         return None
-    tet_body = _load_stage(obj, "tets", settings.tets_key)
-    linear_modes = _load_stage(obj, "modes", settings.prepared_key)
-    if tet_body is None or linear_modes is None:
+    try:
+        inputs = read_inputs(obj, bpy.context.evaluated_depsgraph_get())
+    except InputError:
         return None
-    return PreparedBody(tet_body, linear_modes, _load_stage(obj, "reduced", settings.reduced_key))
+    if inputs.tets_key != settings.tets_key:
+        return None
+    job = Job(None)
+    try:
+        body = prepare(inputs, job)
+    except (InputError, ValueError, RuntimeError) as exc:
+        print(f"RS Elastic: could not rebuild '{obj.name}': {exc}")
+        return None
+    for message in job.warnings:
+        print(f"RS Elastic: {message}")
+    if body.keys[:2] != (settings.tets_key, settings.prepared_key):
+        return None
+    if body.keys[2] != settings.reduced_key:
+        # Same inputs, but recomputed modes need not be bit-identical (eigensolver signs), so
+        # the deformer built on them gets another content key: it is the one to use now.
+        settings.reduced_key = body.keys[2]
+        settings.reduced_basis_count = body.deformer.basis_size
+        settings.cubature_count = len(body.deformer.cubature_tets)
+    return body
 
 
 def persist(obj):
     """Make sure the object's prepared stages are in its primary cache folder (after a file is
     saved under a new name its cache moves next to it)."""
-    folder = cache_dirs()[0]
+    folders = cache_dirs()
     for stage, key in _stage_keys(obj.rs_elastic):
         if not key:
             continue
-        path = cache_file(folder, obj.name, stage, key)
-        if cache.stored_key(path) == key:
+        target = cache_file(folders[0], obj.name, stage, key)
+        if cache.stored_key(target) == key:
             continue
-        value = _load_stage(obj, stage, key)
-        if value is None:
-            continue
-        arrays = _to_arrays(stage, value)
+        sources = [cache_file(folder, obj.name, stage, key) for folder in folders[1:]]
+        source = next((path for path in sources if cache.stored_key(path) == key), None)
+        if source is None:
+            continue     # not on disk: rebuilt when next used
         try:
-            cache.save(path, key, arrays)
+            os.makedirs(folders[0], exist_ok=True)
+            shutil.copyfile(source, target)
         except OSError as exc:
-            print(f"RS Elastic: could not write the cache {path}: {exc}")
+            print(f"RS Elastic: could not write the cache {target}: {exc}")
 
 
 def load_tet_body(obj):
-    return _load_stage(obj, "tets", obj.rs_elastic.tets_key)
+    """The object's tet mesh (nodes and tets only matter to the overlay), or None. Safe in draw."""
+    key = obj.rs_elastic.tets_key
+    entry = _MEMORY.get(key)
+    if entry is not None:
+        return entry[0]
+    stored = stored_tet_mesh(obj, key)
+    if stored is not None:
+        return TetBody(stored[0], stored[1], None)
+    return _read_file(cache_dirs(), obj.name, "tets", key, "", lambda message: None)
 
 
-def _load_stage(obj, stage, key):
-    if not key:
-        return None
-    if key in _MEMORY:
-        return _MEMORY[key]
+def load_pinned_nodes(obj):
+    """(p,) tet nodes the prepared modes hold fixed, or None. Safe in draw (no recomputing)."""
+    key = obj.rs_elastic.prepared_key
+    entry = _MEMORY.get(key)
+    if entry is not None:
+        return entry[0].pinned_nodes
     for folder in cache_dirs():
         try:
-            arrays = cache.load(cache_file(folder, obj.name, stage, key), key)
+            arrays = cache.load(cache_file(folder, obj.name, "modes", key), key)
         except cache.CacheCorrupt:
             continue
-        if arrays is not None:
-            value = _from_arrays(stage, arrays)
-            _remember(key, value)
-            return value
+        pins = None if arrays is None else arrays.get("pinned_nodes")
+        if pins is not None and pins.dtype.kind in "iu" and pins.ndim == 1:
+            return pins
     return None

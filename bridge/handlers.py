@@ -14,10 +14,19 @@ def _move_cache_after_save(*_args):
             bodies.persist(obj)
 
 
+@persistent
+def _forget_fingerprints(scene, depsgraph):
+    # The panel's staleness check caches each body's geometry fingerprint until it changes.
+    bodies.forget_fingerprints(depsgraph.updates)
+
+
 def register():
     bpy.app.handlers.save_post.append(_move_cache_after_save)
+    bpy.app.handlers.depsgraph_update_post.append(_forget_fingerprints)
 
 
 def unregister():
     if _move_cache_after_save in bpy.app.handlers.save_post:
         bpy.app.handlers.save_post.remove(_move_cache_after_save)
+    if _forget_fingerprints in bpy.app.handlers.depsgraph_update_post:
+        bpy.app.handlers.depsgraph_update_post.remove(_forget_fingerprints)

@@ -69,7 +69,10 @@ class RSTools:
 
 
 def for_object(obj):
-    """RSTools for the object's prepared body, or None if it is not prepared for this mesh."""
+    """RSTools for the object's prepared body, or None if it is not prepared for this mesh (or
+    is stale: see bodies.stale_reason)."""
+    if bodies.stale_reason(obj, cached=True):
+        return None
     key = obj.rs_elastic.prepared_key + obj.rs_elastic.reduced_key
     if key in _TOOLS:
         _TOOLS.move_to_end(key)

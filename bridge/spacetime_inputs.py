@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import fem, rs, spacetime
-from . import bake, constraints, rs_tools, scene
+from . import bake, bodies, constraints, rs_tools, scene
 from .scene import InputError
 
 
@@ -38,6 +38,7 @@ def frame_range(obj, blender_scene):
 
 
 def prepared_tools(obj):
+    bodies.require_current(obj)      # says what changed since Prepare Body
     tools = rs_tools.for_object(obj)
     if tools is None or tools.deformer is None:
         raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")

@@ -1,7 +1,8 @@
-"""Viewport overlay of tet-mesh edges for objects with `Show Tets` on.
+"""Viewport overlay of tet-mesh edges for objects with `Show Tets` on, with the tet nodes the pins
+hold drawn as points in a colour of their own.
 
-Drawn by one POST_VIEW handler; the object's data is never touched. The GPU batch of each tet
-mesh is built once per cache key. Nothing is drawn in background mode (there is no viewport).
+Drawn by one POST_VIEW handler; the object's data is never touched. The GPU batches of each tet
+mesh are built once per cache key. Nothing is drawn in background mode (there is no viewport).
 """
 import bpy
 import numpy as np
@@ -9,7 +10,9 @@ import numpy as np
 from . import bodies
 
 _handler = None
-_batches = {}   # tets_key -> (gpu batch, shader)
+_batches = {}   # (tets_key, prepared_key) -> (shader, edge batch, pinned-node batch or None)
+EDGE_COLOUR = (0.1, 0.6, 1.0, 0.6)
+PINNED_COLOUR = (1.0, 0.35, 0.05, 1.0)
 
 
 def _tet_edges(tets):
@@ -20,7 +23,8 @@ def _tet_edges(tets):
 
 
 def _batch(obj):
-    key = obj.rs_elastic.tets_key
+    settings = obj.rs_elastic
+    key = (settings.tets_key, settings.prepared_key)
     if key not in _batches:
         import gpu
         from gpu_extras.batch import batch_for_shader
@@ -29,10 +33,14 @@ def _batch(obj):
             _batches[key] = None
         else:
             shader = gpu.shader.from_builtin('UNIFORM_COLOR')
-            batch = batch_for_shader(shader, 'LINES',
-                                     {"pos": tet_body.nodes.astype(np.float32)},
+            nodes = tet_body.nodes.astype(np.float32)
+            edges = batch_for_shader(shader, 'LINES', {"pos": nodes},
                                      indices=_tet_edges(tet_body.tets).astype(np.int32))
-            _batches[key] = (batch, shader)
+            pinned = bodies.load_pinned_nodes(obj) if settings.prepared_key else None
+            points = None
+            if pinned is not None and len(pinned) and pinned.max() < len(nodes):
+                points = batch_for_shader(shader, 'POINTS', {"pos": nodes[pinned]})
+            _batches[key] = (shader, edges, points)
     return _batches[key]
 
 
@@ -45,12 +53,17 @@ def _draw():
         entry = _batch(obj)
         if entry is None:
             continue
-        batch, shader = entry
+        shader, edges, points = entry
         gpu.matrix.push()
         gpu.matrix.multiply_matrix(obj.matrix_world)
         gpu.state.blend_set('ALPHA')
-        shader.uniform_float("color", (0.1, 0.6, 1.0, 0.6))
-        batch.draw(shader)
+        shader.uniform_float("color", EDGE_COLOUR)
+        edges.draw(shader)
+        if points is not None:
+            gpu.state.point_size_set(6.0)
+            shader.uniform_float("color", PINNED_COLOUR)
+            points.draw(shader)
+            gpu.state.point_size_set(1.0)
         gpu.state.blend_set('NONE')
         gpu.matrix.pop()
 

@@ -18,9 +18,9 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
     def apply(self, context, body, job):
         obj = bpy.data.objects[self._inputs.object_name]
         settings = obj.rs_elastic
-        settings.tets_key = self._inputs.tets_key
-        settings.prepared_key = self._inputs.modes_key
-        settings.reduced_key = self._inputs.reduced_key
+        settings.tets_key, settings.prepared_key, settings.reduced_key = body.keys
+        bodies.store_tet_mesh(obj, settings.tets_key, body.tet_body)
+        bodies.record_prepared(obj, self._inputs.fingerprint)
         settings.reduced_basis_count = body.deformer.basis_size
         settings.cubature_count = len(body.deformer.cubature_tets)
         settings.tet_node_count = len(body.tet_body.nodes)

@@ -25,7 +25,9 @@ class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
             settings.reduced_key = ""
             settings.mode_results.clear()
             settings.mnf = 0.0
+            bodies.forget_prepared(obj)
         settings.tets_key = self._key
+        bodies.store_tet_mesh(obj, self._key, tet_body)
         settings.tet_node_count = len(tet_body.nodes)
         settings.tet_count = len(tet_body.tets)
         bodies.persist(obj)

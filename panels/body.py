@@ -1,6 +1,8 @@
 """The parent panel: which body the settings below belong to."""
 import bpy
 
+from ..bridge import bodies
+
 
 class RSElasticPanel:
     bl_space_type = 'VIEW_3D'
@@ -43,7 +45,11 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         settings = obj.rs_elastic
         row = self.layout.row()
         row.label(text=obj.name, icon='MESH_DATA')
-        if settings.is_prepared:
+        stale = bodies.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
+        if stale:
+            row.label(text="Stale", icon='ERROR')
+            self.layout.label(text=stale[0].upper() + stale[1:])
+        elif settings.is_prepared:
             row.label(text="Prepared", icon='CHECKMARK')
         elif settings.tets_key:
             row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')

@@ -104,6 +104,30 @@ def load(path, key):
     return arrays
 
 
+def validate(arrays, schema, path=""):
+    """Check loaded arrays against ``schema`` {name: (dtype kinds, shape)}; return the sizes.
+
+    kinds is a string of numpy dtype kinds ("f", "iu", ...); a shape entry is an int (fixed), a
+    str (a size that must agree wherever the same name appears) or None (any). Float arrays must
+    be finite. Raises CacheCorrupt naming the first problem, so the caller rebuilds the file.
+    """
+    sizes = {}
+    for name, (kinds, shape) in schema.items():
+        if name not in arrays:
+            raise CacheCorrupt(f"cache file {path} has no array '{name}'")
+        a = arrays[name]
+        if a.dtype.kind not in kinds or a.ndim != len(shape):
+            raise CacheCorrupt(f"cache file {path}: array '{name}' is {a.dtype} {a.shape}")
+        for axis, (want, got) in enumerate(zip(shape, a.shape)):
+            if isinstance(want, str):
+                want = sizes.setdefault(want, got)
+            if want is not None and want != got:
+                raise CacheCorrupt(f"cache file {path}: array '{name}' has shape {a.shape}")
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise CacheCorrupt(f"cache file {path}: array '{name}' is not finite")
+    return sizes
+
+
 def stored_key(path):
     """The key a cache file was saved under, reading nothing else; None if missing or unreadable."""
     try:

@@ -2,6 +2,7 @@
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -106,3 +107,55 @@ def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     new = set(os.listdir(folder))
     assert len(new) == 3 and len(old & new) == 1      # the tets are shared; old modes, reduced gone
+
+
+def stored_tets(ext, obj):
+    group = obj.rs_elastic.get(ext.bridge.bodies.TET_MESH)
+    return group["key"], np.array(group["nodes"]), np.array(group["tets"])
+
+
+def test_the_tet_mesh_stays_with_the_file_until_the_surface_or_mesher_settings_change(ext):
+    obj = prepare_bar(ext)
+    stats, bodies = ext.bridge.bodies.stats, ext.bridge.bodies
+    key, nodes, tets = stored_tets(ext, obj)
+    assert key == obj.rs_elastic.tets_key and len(tets) == 4 * obj.rs_elastic.tet_count
+    assert nodes.dtype == np.float64 and len(nodes) == 3 * obj.rs_elastic.tet_node_count
+    # Material, pins, mode count and reduced settings keep it, with no cache at all.
+    obj.rs_elastic.youngs_modulus *= 2
+    obj.rs_elastic.num_modes = 4
+    obj.vertex_groups["Pin"].add(list(range(len(obj.data.vertices))[:3]), 1.0, 'REPLACE')
+    obj.rs_elastic.cubature_tets = 50
+    shutil.rmtree(bodies.cache_dirs()[0])
+    bodies._MEMORY.clear()
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert stats["tetrahedralize"] == 1 and stats["modes"] == 2
+    assert stored_tets(ext, obj)[0] == key
+    np.testing.assert_array_equal(stored_tets(ext, obj)[1], nodes)
+    # The mesher settings make a new one; undo brings the old one back.
+    bpy.ops.ed.undo_push(message="before")
+    obj.rs_elastic.edge_length = 0.1
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    bpy.ops.ed.undo_push(message="Prepare Body")
+    assert stats["tetrahedralize"] == 2 and stored_tets(ext, obj)[0] != key
+    bpy.ops.ed.undo()
+    obj = bpy.data.objects["Bar"]
+    assert stored_tets(ext, obj)[0] == key
+    np.testing.assert_array_equal(stored_tets(ext, obj)[2], tets)
+    # And the surface makes a new one.
+    obj.data.vertices[0].co.x -= 0.1
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert stats["tetrahedralize"] == 3 and stored_tets(ext, obj)[0] != key
+
+
+def test_the_overlay_reads_the_pinned_nodes_without_recomputing(ext):
+    obj = prepare_bar(ext)
+    bodies = ext.bridge.bodies
+    pinned = bodies.load_prepared(obj).linear_modes.pinned_nodes
+    assert len(pinned) > 0
+    np.testing.assert_array_equal(bodies.load_pinned_nodes(obj), pinned)
+    bodies._MEMORY.clear()
+    np.testing.assert_array_equal(bodies.load_pinned_nodes(obj), pinned)      # from the file
+    assert bodies.stats["modes"] == 1
+    nodes = bodies.load_tet_body(obj).nodes
+    assert np.abs(nodes[pinned, 0]).max() < 0.5        # on the pinned end face, not beyond

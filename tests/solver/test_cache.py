@@ -113,3 +113,22 @@ def test_object_arrays_and_reserved_names_are_rejected(tmp_path):
     with pytest.raises(ValueError):
         cache.save(tmp_path / "c.npz", "key", {"obj": np.array([{}, 1], dtype=object)})
     assert os.listdir(tmp_path) == []
+
+
+def test_validate_checks_presence_kind_shape_agreement_and_finiteness():
+    schema = {"X": ("f", ("N", 3)), "T": ("iu", (None, 4)), "lam": ("f", ("N_lam",))}
+    arrays = {"X": np.zeros((10, 3)), "T": np.zeros((4, 4), dtype=np.int64), "lam": np.ones(5)}
+    assert cache.validate(arrays, schema) == {"N": 10, "N_lam": 5}
+    agree = {"X": ("f", ("N", 3)), "Y": ("f", ("N",))}
+    assert cache.validate({"X": np.zeros((4, 3)), "Y": np.zeros(4)}, agree) == {"N": 4}
+    bad = [
+        ({k: v for k, v in arrays.items() if k != "T"}, "has no array 'T'"),
+        (dict(arrays, T=arrays["T"].astype(float)), "array 'T' is float64"),
+        (dict(arrays, X=np.zeros((10, 2))), "array 'X' has shape"),
+        (dict(arrays, lam=np.array([1.0, np.nan])), "array 'lam' is not finite"),
+    ]
+    for broken, message in bad:
+        with pytest.raises(cache.CacheCorrupt, match=message):
+            cache.validate(broken, schema)
+    with pytest.raises(cache.CacheCorrupt, match="array 'Y' has shape"):
+        cache.validate({"X": np.zeros((4, 3)), "Y": np.zeros(5)}, agree)
