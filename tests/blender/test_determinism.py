@@ -40,6 +40,7 @@ else:
 body = ext.bridge.bodies.load_prepared(obj)
 np.savez({dump!r}, nodes=body.tet_body.nodes, tets=body.tet_body.tets, *bakes)
 print("STATS " + json.dumps(dict(ext.bridge.bodies.stats)))
+blender_session.exit_child(0)
 """
 
 
