@@ -26,7 +26,7 @@ import re
 
 import numpy as np
 
-from .animation import fcurves as _fcurves
+from . import animation
 from .scene import InputError, require_single_user
 
 BAKE_PREFIX = "RS Bake "
@@ -54,7 +54,7 @@ def _legacy_role(keys, block):
     match = re.fullmatch(r"RS (Bake|Take) (\d+)", block.name)
     if match is None:
         return None
-    curves = _fcurves(keys, create=False)
+    curves = animation.fcurves(keys, create=False)
     curve = None if curves is None else curves.find(_value_path(block.name))
     if match.group(1) == "Take":
         return "take" if curve is None else None
@@ -116,11 +116,7 @@ def remove_owned_keys(obj, blocks):
     keys = obj.data.shape_keys
     if keys is None:
         return 0
-    curves = _fcurves(keys, create=False)
-    if curves is not None:
-        paths = {_value_path(b.name) for b in blocks}
-        for curve in [c for c in curves if c.data_path in paths]:
-            curves.remove(curve)
+    animation.remove_fcurves(keys, {_value_path(b.name) for b in blocks})
     for block in list(blocks):
         name = block.name
         obj.shape_key_remove(block)
@@ -181,15 +177,9 @@ def write_bake(obj, frames, positions):
         _set_positions(block, pose)
         block.value = 0.0
     keys = obj.data.shape_keys
-    fcurves = _fcurves(keys, create=True)
     for frame, block in zip(frames, blocks):
-        curve = fcurves.new(_value_path(block.name), index=0)
-        curve.keyframe_points.add(3)
-        curve.keyframe_points.foreach_set(
-            "co", np.array([frame - 1, 0.0, frame, 1.0, frame + 1, 0.0], dtype=np.float32))
-        for point in curve.keyframe_points:
-            point.interpolation = 'CONSTANT'
-        curve.update()
+        animation.insert_keys(keys, _value_path(block.name),
+                              [(frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)], 'CONSTANT')
     obj.data.update()
     return [k.name for k in keys.key_blocks
             if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
@@ -228,12 +218,8 @@ def keep_bake_as_take(obj):
         return []
     remove_owned_keys(obj, owned_keys(obj, "take"))
     keys = obj.data.shape_keys
-    curves = _fcurves(keys, create=False)
+    animation.remove_fcurves(keys, {_value_path(block.name) for _, block in blocks})
     for frame, block in blocks:
-        if curves is not None:
-            curve = curves.find(_value_path(block.name))
-            if curve is not None:
-                curves.remove(curve)
         block.value = 0.0
         block.name = f"{TAKE_PREFIX}{frame:04d}"
     _tag(keys, {block.name: "take" for _, block in blocks})     # the bake names drop out
