@@ -93,9 +93,8 @@ def make_set(cells, transform=False):
 
     transform: the body is the bar under ``object_transform``, as a Blender object with that
     transform: fTetWild meshes the mesh data (in its own space) and everything after it (pins,
-    K, M, modes) happens in the transformed space. (Meshing the rotated surface itself gave
-    f1 / f_EB 1.047-1.054, spread 0.6 %, at ~14 s per mesh instead of ~4 s: fTetWild is slower
-    on faces that are not axis-aligned.)
+    K, M, modes) happens in the transformed space. (Meshing the rotated surface itself took
+    fTetWild ~15 s per mesh instead of ~3 s: it is slower on faces that are not axis-aligned.)
     """
     V, F = bar_surface(cells)
     end = (V[:, 0] < 1e-9).astype(np.float64)
