@@ -310,7 +310,11 @@ def fingerprint(obj, cached=False):
 
 
 def forget_fingerprints(depsgraph_updates):
-    """Drop cached geometry fingerprints of objects whose geometry or settings changed."""
+    """Drop the cached geometry fingerprints once a mesh or an object's geometry changed (all of
+    them for None: after a load or an undo)."""
+    if depsgraph_updates is None:
+        _GEOMETRY.clear()
+        return
     for update in depsgraph_updates:
         if isinstance(update.id, (bpy.types.Mesh, bpy.types.Object)) and (
                 update.is_updated_geometry or isinstance(update.id, bpy.types.Mesh)):
