@@ -389,13 +389,12 @@ def test_a_bake_from_before_tagging_is_cleared(ext):
     obj.shape_key_add(name="Basis", from_mix=False)
     notes = add_user_key(obj, "RS Bake notes", keyed_frames=(2,))
     fake = add_user_key(obj, "RS Bake 0009")                # a user's key: no bake F-curve
-    curves = ext.bridge.animation.fcurves(obj.data.shape_keys, create=True)
     for frame in (1, 2, 3):
         name = f"RS Bake {frame:04d}"
         add_user_key(obj, name, offset=0.1 * frame)
-        curve = curves.new(f'key_blocks["{name}"].value', index=0)
-        for f, v in ((frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)):
-            curve.keyframe_points.insert(f, v)
+        ext.bridge.animation.insert_keys(obj.data.shape_keys, f'key_blocks["{name}"].value',
+                                         [(frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)],
+                                         'CONSTANT')
     assert "rs_elastic" not in obj.data.shape_keys
     assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3]
     assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
