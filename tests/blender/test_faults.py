@@ -4,8 +4,6 @@ Each refusal row asserts the exact one-line message and an unchanged `user_finge
 the user's shape keys and their keyframes, settings, every object). Each ownership row runs the
 real operators around the user's data and asserts the same fingerprint afterwards.
 """
-import os
-
 import bpy
 import numpy as np
 import pytest
