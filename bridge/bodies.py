@@ -310,7 +310,11 @@ def fingerprint(obj, cached=False):
 
 
 def forget_fingerprints(depsgraph_updates):
-    """Drop cached geometry fingerprints of objects whose geometry or settings changed."""
+    """Drop the cached geometry fingerprints once a mesh or an object's geometry changed (all of
+    them for None: after a load or an undo)."""
+    if depsgraph_updates is None:
+        _GEOMETRY.clear()
+        return
     for update in depsgraph_updates:
         if isinstance(update.id, (bpy.types.Mesh, bpy.types.Object)) and (
                 update.is_updated_geometry or isinstance(update.id, bpy.types.Mesh)):
@@ -552,11 +556,11 @@ def tet_stage(inputs, job):
 def _pinned_nodes(inputs, tet_body):
     """Tet nodes held by the pin group's weights (the rule is embed.pinned_nodes_from_surface)."""
     X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
-    from_surface = getattr(embed, "pinned_nodes_from_surface", None)
-    if from_surface is None:   # TEMPORARY fallback until the solver branch lands: drop at merge
-        return embed.pinned_nodes_from_vertices(Phi, inputs.pin_weights > 0.0)
-    return from_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
-                        inputs.pin_weights, threshold=0.5)
+    # fTetWild's surface strays up to the envelope from the mesh: twice that still finds the
+    # tet-surface nodes of a painted face (embed.PIN_TOLERANCE is this for the default envelope).
+    return embed.pinned_nodes_from_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
+                                           inputs.pin_weights, threshold=0.5,
+                                           tolerance=2.0 * inputs.envelope)
 
 
 def modes_stage(inputs, tet_body, job, tets_digest=None):
@@ -576,7 +580,8 @@ def modes_stage(inputs, tet_body, job, tets_digest=None):
         job.step(0.65, f"Computing {inputs.num_modes} linear modes")
         stats["modes"] += 1
         try:
-            return modes.linear_modes(K, masses, inputs.num_modes, pinned)
+            return modes.linear_modes(K, masses, inputs.num_modes, pinned,
+                                      rest_positions=tet_body.nodes)
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
 

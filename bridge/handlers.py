@@ -1,4 +1,5 @@
-"""Application handlers: keep each body's cache next to the .blend it belongs to."""
+"""Application handlers: keep each body's cache next to the .blend it belongs to, and drop the
+panel's cached fingerprints when what they describe may have changed."""
 import bpy
 from bpy.app.handlers import persistent
 
@@ -20,9 +21,20 @@ def _forget_fingerprints(scene, depsgraph):
     bodies.forget_fingerprints(depsgraph.updates)
 
 
+@persistent
+def _forget_all_fingerprints(*_args):
+    # After a load or an undo step, objects may sit at addresses that other objects had.
+    bodies.forget_fingerprints(None)
+
+
+_ALL_FINGERPRINTS_GONE = ("load_post", "undo_post", "redo_post")
+
+
 def register():
     bpy.app.handlers.save_post.append(_move_cache_after_save)
     bpy.app.handlers.depsgraph_update_post.append(_forget_fingerprints)
+    for name in _ALL_FINGERPRINTS_GONE:
+        getattr(bpy.app.handlers, name).append(_forget_all_fingerprints)
 
 
 def unregister():
@@ -30,3 +42,7 @@ def unregister():
         bpy.app.handlers.save_post.remove(_move_cache_after_save)
     if _forget_fingerprints in bpy.app.handlers.depsgraph_update_post:
         bpy.app.handlers.depsgraph_update_post.remove(_forget_fingerprints)
+    for name in _ALL_FINGERPRINTS_GONE:
+        handlers = getattr(bpy.app.handlers, name)
+        if _forget_all_fingerprints in handlers:
+            handlers.remove(_forget_all_fingerprints)

@@ -18,7 +18,7 @@ eigenvalues (symmetric bodies) up to any rotation of the cluster's basis; ARPACK
 vector is random. Both solvers therefore end in ``canonical_basis``: ARPACK starts from a fixed
 smooth field, a few extra eigenpairs are computed so no cluster is cut at the end of the list,
 and each cluster's basis is replaced by the Gram-Schmidt (in M) of the M-projections of fixed,
-asymmetric test fields of the rest positions (``test_fields``), which also fixes every sign.
+asymmetric test fields of the rest positions (``orientation_fields``), which also fixes every sign.
 The test fields are functions of the rest positions normalised by their bounding box, so the
 result does not depend on the node numbering, the position or the scale of the body. Without
 rest positions the fields are functions of the node index: still deterministic, but then a
@@ -38,7 +38,7 @@ SHIFT_FRACTION = 1e-6
 DENSE_LIMIT = 600  # free DOFs up to which the dense solver is used
 CLUSTER_RTOL = 1e-8  # eigenvalues this close (relative) form one cluster of repeated values
 EXTRA_PAIRS = 4      # eigenpairs computed beyond the request, so a cluster is not cut in two
-NUM_TEST_FIELDS = 16  # fixed test fields that orient the modes (more if a cluster is larger)
+NUM_FIELDS = 16     # fixed test fields that orient the modes (a cluster may not be larger)
 
 
 @dataclass
@@ -125,7 +125,7 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None):
 
     K_free = K[free_dofs][:, free_dofs]
     m_free = np.repeat(masses, 3)[free_dofs]
-    fields = test_fields(rest_positions, n_nodes)[free_dofs]
+    fields = orientation_fields(rest_positions, n_nodes)[free_dofs]
     wanted = num_modes + n_rigid
     k = min(wanted + EXTRA_PAIRS, int(free_dofs.sum()) - 1)
     vals, vecs = _lowest_eigenpairs(K_free, m_free, k, start=fields[:, 0])
@@ -135,7 +135,7 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None):
     return LinearModes(eigenvalues=vals[n_rigid:wanted], vectors=W, pinned_nodes=pinned)
 
 
-def test_fields(rest_positions, n_nodes, count=NUM_TEST_FIELDS):
+def orientation_fields(rest_positions, n_nodes, count=NUM_FIELDS):
     """(3N, count) fixed smooth displacement fields with no symmetry, node-major.
 
     Field j at node x: sin(2 pi k_j . xh + phase_jc) for component c, where xh is the rest

@@ -1,7 +1,6 @@
 """Stale and damaged state: every operator that uses a prepared body refuses with one line that says
 what changed, and changes nothing of the user's; damaged or mixed cache files are rebuilt with one
 warning; an undo that brings back a pruned preparation quietly recomputes it."""
-import os
 import pathlib
 import shutil
 import time
