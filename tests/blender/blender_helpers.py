@@ -1,5 +1,6 @@
 """Scene builders and fingerprints shared by the Blender tests."""
 import hashlib
+import importlib
 import pathlib
 
 import bpy
@@ -133,20 +134,12 @@ def _rna_values(struct, skip=()):
 
 
 def _curves(id_block, skip_paths=()):
-    """(data path, index, keyframes) of every F-curve animating `id_block`."""
-    anim = id_block.animation_data
-    if anim is None or anim.action is None:
-        return []
-    action = anim.action
-    if hasattr(action, "layers"):
-        from bpy_extras import anim_utils
-        bag = (anim_utils.action_get_channelbag_for_slot(action, anim.action_slot)
-               if anim.action_slot is not None else None)
-        curves = [] if bag is None else bag.fcurves
-    else:
-        curves = action.fcurves
+    """(data path, index, keyframes) of every F-curve animating `id_block`, read through the
+    extension's own Blender-version-independent accessor."""
+    animation = importlib.import_module("bl_ext.user_default.rs_elastic.bridge.animation")
+    curves = animation.fcurves(id_block, create=False)
     rows = []
-    for curve in curves:
+    for curve in curves or []:
         if curve.data_path in skip_paths:
             continue
         co = np.empty(len(curve.keyframe_points) * 2)

@@ -4,14 +4,11 @@ Each refusal row asserts the exact one-line message and an unchanged `user_finge
 the user's shape keys and their keyframes, settings, every object). Each ownership row runs the
 real operators around the user's data and asserts the same fingerprint afterwards.
 """
-import os
-
 import bpy
 import numpy as np
 import pytest
 
 from blender_helpers import link_mesh, make_active, make_bar, user_fingerprint, vertices
-
 
 
 # --- helpers ----------------------------------------------------------------------------------------
@@ -390,13 +387,12 @@ def test_a_bake_from_before_tagging_is_cleared(ext):
     obj.shape_key_add(name="Basis", from_mix=False)
     notes = add_user_key(obj, "RS Bake notes", keyed_frames=(2,))
     fake = add_user_key(obj, "RS Bake 0009")                # a user's key: no bake F-curve
-    curves = ext.bridge.animation.fcurves(obj.data.shape_keys, create=True)
     for frame in (1, 2, 3):
         name = f"RS Bake {frame:04d}"
         add_user_key(obj, name, offset=0.1 * frame)
-        curve = curves.new(f'key_blocks["{name}"].value', index=0)
-        for f, v in ((frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)):
-            curve.keyframe_points.insert(f, v)
+        ext.bridge.animation.insert_keys(obj.data.shape_keys, f'key_blocks["{name}"].value',
+                                         [(frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)],
+                                         'CONSTANT')
     assert "rs_elastic" not in obj.data.shape_keys
     assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3]
     assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
@@ -457,8 +453,9 @@ def test_too_far_for_blenders_float32_coordinates():
     """At 1e7 m Blender's float32 vertex coordinates are 1 m apart: the unit cube collapses, and
     that is said at once (before: fTetWild blocked for 600 s)."""
     cube("Far", offset=(1e7, 0.0, 0.0))
-    assert refusal(bpy.ops.rs_elastic.prepare) == ("'Far': the surface is flat (it has no thickness), so it encloses "
-                                 "no volume; give it thickness (e.g. a Solidify modifier) first")
+    assert refusal(bpy.ops.rs_elastic.prepare) == (
+        "'Far': the surface is flat (it has no thickness), so it encloses no volume; give it "
+        "thickness (e.g. a Solidify modifier) first")
 
 
 # --- the command line: bad arguments exit 2, failures exit 1, each with one line ---------------------
