@@ -208,7 +208,7 @@ def test_free_fall_follows_half_g_t_squared_without_rotation(free_body):
     """Released while vibrating (mode 1 at 0.5 rad): the centre of mass falls exactly as implicit
     Euler's recursion (1/2 g t^2 + 1/2 g h t), and the body does not start to spin."""
     h = 1.0 / 60.0
-    sim = simulation(free_body, h, gravity=GRAVITY, free=True)
+    sim = simulation(free_body, h, gravity=GRAVITY, free=True, integrator="implicit_euler")
     s0 = np.zeros(8)
     s0[0] = 0.5 / np.linalg.norm(free_body["modal_rs"][:, :3, 0], axis=1).max()
     sim.set_state(s0)
@@ -243,7 +243,7 @@ def test_free_body_spins_and_falls(free_body):
     dissipation) its size, and the body turns by about omega t."""
     h = 1.0 / 240.0
     w0, v0 = np.array([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0])
-    sim = simulation(free_body, h, gravity=GRAVITY, free=True)
+    sim = simulation(free_body, h, gravity=GRAVITY, free=True, integrator="implicit_euler")
     sim.set_state(np.zeros(8), linear_velocity=v0, angular_velocity=w0)
     trajectory = sim.run(120)
     x = positions(free_body, trajectory)
@@ -271,7 +271,8 @@ def soft_run():
     gravity swings it down through rotations beyond 90 deg (3 s, mass damping 0.5/s)."""
     body = build_body((0.2, 0.05, 0.05), (16, 4, 4), 1e4, 0.45, num_modes=12, max_size=80,
                       max_tets=150, num_poses=60, num_snapshots=100)
-    sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5)
+    sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5,
+                     integrator="implicit_euler")
     energies = [sim.energy()]
     trajectory = sim.run(72, callback=lambda *_: energies.append(sim.energy()))
     return body, trajectory, energies
@@ -369,7 +370,8 @@ def test_trajectory_matches_full_space_reference(bar):
     """Released straight under gravity it drops its tip by ~1.1 m (of 4 m) in 1.2 s; every node
     stays within 5 % of the diagonal of a full-space corotational implicit Euler."""
     h, steps, alpha = 1.0 / 30.0, 36, 1.0
-    trajectory = simulation(bar, h, gravity=GRAVITY, mass_damping=alpha).run(steps)
+    trajectory = simulation(bar, h, gravity=GRAVITY, mass_damping=alpha,
+                            integrator="implicit_euler").run(steps)
     x = positions(bar, trajectory)
     reference = FullSpaceCorotational(bar["X"], bar["T"], bar["masses"], bar["mu"], bar["lam"],
                                       h, GRAVITY, bar["pins"], mass_damping=alpha)
@@ -476,7 +478,8 @@ def test_linear_modes_give_closed_form_damped_implicit_euler(bar):
     h, alpha, beta = 1.0 / 24.0, 0.7, 0.02
     sim = dynamics.Simulation(reduced.LinearDeformer(12, W), bar["X"], bar["masses"],
                               bar["potential"], h, gravity=GRAVITY, mass_damping=alpha,
-                              stiffness_damping=beta, tolerance=1e-12)
+                              stiffness_damping=beta, tolerance=1e-12,
+                              integrator="implicit_euler")
     trajectory = sim.run(20)
     force = W.T @ (np.repeat(bar["masses"], 3) * np.tile(GRAVITY, len(bar["X"])))
     lhs = (1.0 + alpha * h) / h ** 2 + (1.0 + beta / h) * lam
