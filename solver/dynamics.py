@@ -518,13 +518,17 @@ class Simulation:
         consistent with the equation of motion; a free frame's world angular velocity and
         acceleration and its centre's velocity and acceleration (spinning uniformly, falling
         with g). The world fields are pushed forward from these each step (``_rates``)."""
-        self._v_s = s_dot.copy()
+        self._v_s, self._impulse = s_dot.copy(), np.zeros(self.num_coords)
+        if self.frame_motion is not None:            # carried along at the frame's velocity
+            R, c = self.frame_motion(self.time - self.dt)
+            self._frame_velocity = ((self.rotation - R) / self.dt,
+                                    (self.translation - c) / self.dt)
         if self.free:
             self._spin = np.array([np.asarray(angular_velocity, float), np.zeros(3)])
             self._drift = np.array([np.asarray(linear_velocity, float), self.gravity])
         J = self.deformer.q_jacobian(self.coords)
         self._a_s = np.zeros(self.num_coords)
-        v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
+        _, v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
         if not (self.free or self.frame_motion is not None):
             force = self.first_moment_B.T @ self.gravity
         else:
@@ -541,7 +545,7 @@ class Simulation:
         self._a_s = scipy.linalg.solve(0.5 * (mass + mass.T), rhs, assume_a="pos")
 
     def _body_rates(self, J=None):
-        """(v_q, a_q) (rB,): q_dot = J v_s and q_ddot = J a_s + kappa at the current state, the
+        """(J, v_q, a_q): J = dq/ds (rB, m), q_dot = J v_s (rB,) and q_ddot = J a_s + kappa at the current state, the
         curvature kappa = d^2 q/ds^2 (v_s, v_s) by a central second difference of q(s) over
         s +- dt v_s (its O(dt^2) error matches the scheme's order; two cheap q evaluations).
         Pushing forward from s keeps v and a tangent to the RS map: carried in q-space, their
@@ -554,20 +558,41 @@ class Simulation:
             step = self.dt * v
             kappa = (self.deformer.q(self.coords + step) - 2.0 * self.q
                      + self.deformer.q(self.coords - step)) / self.dt ** 2
-        return J @ v, J @ self._a_s + kappa
+        return J, J @ v, J @ self._a_s + kappa
 
     def _frame_rates(self):
-        """(R', R'', c', c'') of the frame at the current time: a free frame's from its state,
-        a prescribed one's by central differences of ``frame_motion`` over dt."""
+        """(R', R'', c', c'') of the frame at the current time: a free frame's from its state;
+        a prescribed one moves at its secant velocity over each step, without acceleration
+        within it (``_follow_frame``)."""
         R = np.asarray(self.rotation, float)
         if self.free:
             W, A = rs.skew(self._spin)
             return W @ R, (A + W @ W) @ R, self._drift[0], self._drift[1]
-        (Rm, cm), (Rp, cp) = (self.frame_motion(self.time - self.dt),
-                              self.frame_motion(self.time + self.dt))
-        c = np.asarray(self.translation, float)
-        return ((Rp - Rm) / (2.0 * self.dt), (Rp - 2.0 * R + Rm) / self.dt ** 2,
-                (cp - cm) / (2.0 * self.dt), (cp - 2.0 * c + cm) / self.dt ** 2)
+        R1, c1 = self._frame_velocity
+        return R1, np.zeros((3, 3)), c1, np.zeros(3)
+
+    def _follow_frame(self, R, c):
+        """A prescribed frame about to move to (R, c) over the next step: its velocity becomes
+        the secant over that step. A change of frame velocity is an impulse on the body: the
+        world momentum of its elastic part is kept (projected onto the reduced space in the
+        mass metric), so the body lags and swings. Keys sampled per frame (piecewise linear)
+        change velocity only at frames, and this is then exact; smooth motion gets its
+        fictitious forces as impulses (kick, then trapezoidal drift). The damping of that step
+        sees the velocity half way through the kick, so a steady acceleration gives the exact
+        static lag (the kick and the damping stay symmetric)."""
+        R_n = np.asarray(self.rotation, float)
+        R1, c1 = (R - R_n) / self.dt, (c - self.translation) / self.dt
+        old_R1, old_c1 = self._frame_velocity
+        self._frame_velocity = (R1, c1)
+        dR, dc = R1 - old_R1, c1 - old_c1
+        self._impulse = np.zeros(self.num_coords)
+        if not (dR.any() or dc.any()):
+            return
+        J = self.deformer.q_jacobian(self.coords)
+        jump = self._project(R_n, _Field(dR, dR[:, :, None] * self.q, dc))
+        mass = J.T @ self.mass_matrix @ J
+        self._impulse = -scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ jump, assume_a="pos")
+        self._v_s = self._v_s + self._impulse
 
     def _project(self, R, field):
         """B^T M R^T F (rB,) for a world field F (contracted from the mass moments)."""
@@ -597,18 +622,22 @@ class Simulation:
     def _newmark_step(self):
         """One trapezoidal step dt (module docstring); returns the Newton iterations."""
         dt = self.dt
-        v_q, a_q = self._body_rates()
+        if self.frame_motion is not None:
+            R, c = (np.asarray(x, float) for x in self.frame_motion(self.time + dt))
+            self._follow_frame(R, c)
+        J, v_q, a_q = self._body_rates()
+        v_damped = self._v_s - 0.5 * self._impulse       # the velocity the damping sees
+        damped_q = J @ v_damped
         if self.frame_motion is not None or self.free:
             target = self._newmark_target(v_q, a_q)
         if self.frame_motion is not None:
-            R, c = (np.asarray(x, float) for x in self.frame_motion(self.time + dt))
-            model = self._newmark_moving_inertia(R, c, target, v_q)
+            model = self._newmark_moving_inertia(R, c, target, damped_q)
         elif self.free:
-            model = self._newmark_free_inertia(target, v_q)
+            model = self._newmark_free_inertia(target, damped_q)
         else:
             R, c = self.rotation, self.translation
-            model = self._newmark_fixed_inertia(v_q, a_q)
-        damping = (self._damping, self.beta * (self.potential.rest_hessian @ self._v_s))
+            model = self._newmark_fixed_inertia(v_q, a_q, damped_q)
+        damping = (self._damping, self.beta * (self.potential.rest_hessian @ v_damped))
         s, q, iterations = self._minimise(model, self.coords + dt * self._v_s, damping,
                                           self.max_iterations)
         if self.free:
@@ -640,12 +669,12 @@ class Simulation:
         M, k = self.mass_matrix, 2.0 * self.alpha / self.dt
         return k * M, -(M @ (k * self.q + self.alpha * v_q))
 
-    def _newmark_fixed_inertia(self, v_q, a_q):
+    def _newmark_fixed_inertia(self, v_q, a_q, damped_q):
         """R = I, c = 0: 2/dt^2 |q - q_hat|^2_M - B^T M g.q + mass damping, with
         q_hat = q_n + dt v_q + dt^2/4 a_q."""
         dt, M = self.dt, self.mass_matrix
         q_hat = self.q + dt * v_q + 0.25 * dt * dt * a_q
-        _, linear = self._mass_damping_terms(v_q)
+        _, linear = self._mass_damping_terms(damped_q)
         b = (4.0 / dt ** 2) * (M @ q_hat) - linear + self.first_moment_B.T @ self.gravity
         return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, M, b)
 
@@ -848,12 +877,12 @@ class Simulation:
         """
         h2 = self.dt * self.dt
         if self.newmark and (self.free or self.frame_motion is not None):
-            R, v_q = np.asarray(self.rotation, float), self._body_rates()[0]
+            R, v_q = np.asarray(self.rotation, float), self._body_rates()[1]
             R1, _, c1, _ = self._frame_rates()
             velocity = _Field(R1, R1[:, :, None] * self.q + R[:, :, None] * v_q, c1)
             kinetic = 0.5 * self._field_mass_norm2(velocity)
         elif self.newmark:
-            v_q = self._body_rates()[0]
+            v_q = self._body_rates()[1]
             kinetic = 0.5 * float(v_q @ (self.mass_matrix @ v_q))
         elif self.free or self.frame_motion is not None:
             dR = self.rotation - self.rotation_prev
