@@ -530,6 +530,7 @@ class Simulation:
         acceleration and its centre's velocity and acceleration (spinning uniformly, falling
         with g). The world fields are pushed forward from these each step (``_rates``)."""
         self._v_s, self._impulse = s_dot.copy(), np.zeros(self.num_coords)
+        self._impulse_q = np.zeros(self.basis_size)
         if self.frame_motion is not None:            # carried along at the frame's velocity
             R, c = self.frame_motion(self.time - self.dt)
             self._frame_velocity = ((self.rotation - R) / self.dt,
@@ -539,7 +540,7 @@ class Simulation:
             self._drift = np.array([np.asarray(linear_velocity, float), self.gravity])
         J = self.deformer.q_jacobian(self.coords)
         self._a_s = np.zeros(self.num_coords)
-        _, v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
+        v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
         if not (self.free or self.frame_motion is not None):
             force = self.first_moment_B.T @ self.gravity
         else:
@@ -556,20 +557,30 @@ class Simulation:
         self._a_s = scipy.linalg.solve(0.5 * (mass + mass.T), rhs, assume_a="pos")
 
     def _body_rates(self, J=None):
-        """(J, v_q, a_q): J = dq/ds (rB, m), q_dot = J v_s (rB,) and q_ddot = J a_s + kappa at the current state, the
-        curvature kappa = d^2 q/ds^2 (v_s, v_s) by a central second difference of q(s) over
-        s +- dt v_s (its O(dt^2) error matches the scheme's order; two cheap q evaluations).
+        """(v_q, a_q) (rB,): q_dot = J v_s and q_ddot = J a_s + kappa at the current state,
+        kappa = d^2 q/ds^2 (v_s, v_s) the curvature of the RS map along the motion.
+
         Pushing forward from s keeps v and a tangent to the RS map: carried in q-space, their
         components normal to it would ring undamped (the trapezoidal rule never damps them) and
-        feed energy into large rotations."""
-        J = self.deformer.q_jacobian(self.coords) if J is None else J
-        v = self._v_s
-        kappa = np.zeros(self.basis_size)
+        feed energy into large rotations. Without J: by central differences of q(s), over
+        s +- dt v_s (J v_s and kappa, errors O(dt^2) like the scheme's) and s +- dt^2/4 a_s
+        (J a_s, the displacement a_s makes in x_hat): four q evaluations cost a fraction of one
+        Jacobian, and they are exact for a linear map.
+        """
+        s, q, v, a = self.coords, self.q, self._v_s, self._a_s
+        if J is not None:
+            v_q, a_q = J @ v, J @ a
+        else:
+            v_q, a_q = np.zeros(self.basis_size), np.zeros(self.basis_size)
+            if a.any():
+                eps = 0.25 * self.dt ** 2
+                a_q = (self.deformer.q(s + eps * a) - self.deformer.q(s - eps * a)) / (2 * eps)
         if v.any():
-            step = self.dt * v
-            kappa = (self.deformer.q(self.coords + step) - 2.0 * self.q
-                     + self.deformer.q(self.coords - step)) / self.dt ** 2
-        return J, J @ v, J @ self._a_s + kappa
+            ahead, behind = self.deformer.q(s + self.dt * v), self.deformer.q(s - self.dt * v)
+            a_q = a_q + (ahead - 2.0 * q + behind) / self.dt ** 2
+            if J is None:
+                v_q = (ahead - behind) / (2.0 * self.dt)
+        return v_q, a_q
 
     def _frame_rates(self):
         """(R', R'', c', c'') of the frame at the current time: a free frame's from its state;
@@ -596,13 +607,14 @@ class Simulation:
         old_R1, old_c1 = self._frame_velocity
         self._frame_velocity = (R1, c1)
         dR, dc = R1 - old_R1, c1 - old_c1
-        self._impulse = np.zeros(self.num_coords)
+        self._impulse, self._impulse_q = np.zeros(self.num_coords), np.zeros(self.basis_size)
         if not (dR.any() or dc.any()):
             return
         J = self.deformer.q_jacobian(self.coords)
         jump = self._project(R_n, _Field(dR, dR[:, :, None] * self.q, dc))
         mass = J.T @ self.mass_matrix @ J
         self._impulse = -scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ jump, assume_a="pos")
+        self._impulse_q = J @ self._impulse
         self._v_s = self._v_s + self._impulse
 
     def _project(self, R, field):
@@ -636,9 +648,9 @@ class Simulation:
         if self.frame_motion is not None:
             R, c = (np.asarray(x, float) for x in self.frame_motion(self.time + dt))
             self._follow_frame(R, c)
-        J, v_q, a_q = self._body_rates()
+        v_q, a_q = self._body_rates()
         v_damped = self._v_s - 0.5 * self._impulse       # the velocity the damping sees
-        damped_q = J @ v_damped
+        damped_q = v_q - 0.5 * self._impulse_q
         if self.frame_motion is not None or self.free:
             target = self._newmark_target(v_q, a_q)
         if self.frame_motion is not None:
@@ -888,12 +900,12 @@ class Simulation:
         """
         h2 = self.dt * self.dt
         if self.newmark and (self.free or self.frame_motion is not None):
-            R, v_q = np.asarray(self.rotation, float), self._body_rates()[1]
+            R, v_q = np.asarray(self.rotation, float), self._body_rates()[0]
             R1, _, c1, _ = self._frame_rates()
             velocity = _Field(R1, R1[:, :, None] * self.q + R[:, :, None] * v_q, c1)
             kinetic = 0.5 * self._field_mass_norm2(velocity)
         elif self.newmark:
-            v_q = self._body_rates()[1]
+            v_q = self._body_rates()[0]
             kinetic = 0.5 * float(v_q @ (self.mass_matrix @ v_q))
         elif self.free or self.frame_motion is not None:
             dR = self.rotation - self.rotation_prev
