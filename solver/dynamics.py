@@ -528,7 +528,8 @@ class Simulation:
         """Newmark's state in generalised coordinates: v_s = s_dot and the acceleration a_s
         consistent with the equation of motion; a free frame's world angular velocity and
         acceleration and its centre's velocity and acceleration (spinning uniformly, falling
-        with g). The world fields are pushed forward from these each step (``_rates``)."""
+        with g). The world fields are pushed forward from these each step (``_body_rates``,
+        ``_frame_rates``)."""
         self._v_s, self._impulse = s_dot.copy(), np.zeros(self.num_coords)
         self._impulse_q = np.zeros(self.basis_size)
         if self.frame_motion is not None:            # carried along at the frame's velocity
@@ -546,8 +547,7 @@ class Simulation:
         else:
             R = np.asarray(self.rotation, float)
             R1, R2, _, c2 = self._frame_rates()
-            external = _Field.constant(np.zeros(3) if self.free else self.gravity,
-                                       self.basis_size)
+            external = _Field.constant(self.gravity, self.basis_size)   # a free fall cancels
             frame = _Field(R2, R2[:, :, None] * self.q + 2.0 * R1[:, :, None] * v_q, c2)
             force = self._project(R, external - frame)
         mass = J.T @ self.mass_matrix @ J
