@@ -420,6 +420,59 @@ def dynamics_table(rows, reference):
          ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
 
 
+def case_integrators(arg, fps=24, seconds=2.0):
+    """Time integration on the 10k-tet bar of ``case_dynamics`` (arg = number of modes),
+    undamped, no gravity, released from its first mode (tip 1 cm): energy kept after 2 s at
+    24 fps and speed, for Newmark with automatic substeps (the default) and implicit Euler
+    at one step per frame (the old default) and with the same substeps. Energy is the
+    integrator's own kinetic + elastic (``Simulation.energy``); speed is timed over the
+    following second (``_steps_per_second``: fastest of 3 blocks)."""
+    import numpy as np
+    from solver import dynamics, fem, materials, reduced, rs
+    num_modes = int(arg)
+    X, T, pinned, masses, body, recon = _dynamics_body(num_modes)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                             recon, modal_rs=modal_rs)
+    mu, lam = fem.lame_parameters(1e6, 0.45)
+    linear = materials.ReducedPotential.exact(materials.Linear(mu, lam), modal_rs,
+                                              fem.tet_volumes(X, T))
+    start = np.zeros(num_modes)
+    start[0] = 0.01 / np.abs(body.vectors[:, 0]).max()
+    rows = []
+    for integrator, substeps in (("newmark", 0), ("implicit_euler", 1), ("implicit_euler", 0)):
+        sim = dynamics.Simulation(deformer, X, masses, linear, 1.0 / fps, integrator=integrator,
+                                  substeps=substeps)
+        sim.set_state(start)
+        before = sim.energy()["total"]
+        sim.run(int(round(seconds * fps)))
+        kept = sim.energy()["total"] / before
+        rate, iterations = _steps_per_second(sim, 0, fps)   # one more second, timed
+        rows.append(dict(integrator=integrator, substeps=sim.substeps,
+                         f1_hz=float(sim.omega[0] / (2 * np.pi)),
+                         f_max_hz=float(sim.omega[-1] / (2 * np.pi)), energy_kept=kept,
+                         frames_per_second=rate, steps_per_second=rate * sim.substeps,
+                         iterations=iterations / sim.substeps))
+    return dict(modes=num_modes, tets=len(T), basis_size=deformer.basis_size, rows=rows,
+                peak_rss_mb=peak_rss_mb())
+
+
+def integrators_table(result):
+    """Markdown: energy kept after 2 s and speed per integrator (``case_integrators``)."""
+    if "error" in result:
+        return table("Time integration", [result], [("modes", ("modes", "{}"))])
+    return table(
+        f"Time integration ({result['tets']:,}-tet pinned bar, {result['modes']} modes, "
+        f"f1 = {result['rows'][0]['f1_hz']:.2f} Hz, undamped, released from mode 1, 2 s at "
+        "24 fps)", result["rows"],
+        [("integrator", ("integrator", "{}")), ("substeps", ("substeps", "{}")),
+         ("energy kept after 2 s", ("energy_kept", "{:.4f}")),
+         ("frames/s", ("frames_per_second", "{:.1f}")),
+         ("steps/s", ("steps_per_second", "{:.0f}")),
+         ("Newton it/step", ("iterations", "{:.2f}"))])
+
+
+CASES["integrators"] = case_integrators
 CASES["dynamics"] = case_dynamics
 CASES["dynamics_reference"] = case_dynamics_reference
 
@@ -560,6 +613,9 @@ def main():
     results["dynamics_reference"] = run_child("dynamics_reference", "10k")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + dynamics_table(results["dynamics"], results["dynamics_reference"])
+    results["integrators"] = run_child("integrators", "20")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + integrators_table(results["integrators"])
     results["pins"] = [run_child("pins", surface) for surface in ("box", "fine")]
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + pins_table(results["pins"])

@@ -99,6 +99,17 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     fung_stiffening: FloatProperty(
         name="Fung Stiffening", default=10.0, min=0.1, soft_max=100.0,
         description="How soon the Fung material stiffens: around a strain of 1/sqrt(this)")
+    integrator: EnumProperty(
+        name="Integrator", default='NEWMARK',
+        items=[('NEWMARK', "Newmark", "Average acceleration (trapezoidal rule): keeps the energy, "
+                                      "so only the damping you set slows the motion"),
+               ('IMPLICIT_EULER', "Implicit Euler", "Damps the motion numerically, more at "
+                                                    "low frame rates and few substeps")],
+        description="Time integration of the simulation")
+    substeps: IntProperty(
+        name="Substeps", default=0, min=0, max=1000, soft_max=64,
+        description="Steps per frame; 0 = automatic, from the body's highest mode frequency, "
+                    "so the motion does not depend on the frame rate")
 
     # --- Results, written by the operators -----------------------------------------------------------
     tet_node_count: IntProperty(name="Nodes", default=0)

@@ -86,7 +86,8 @@ def gather(obj, blender_scene):
     simulation = dynamics.Simulation(
         tools.deformer, tools.nodes, masses, potential_for(tools, settings), h, gravity=gravity,
         mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
-        free=free, frame_motion=frame_motion)
+        free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
+        substeps=settings.substeps)
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), free, warnings)
 

@@ -1,6 +1,9 @@
-"""Simulation: material model, damping and the Simulate operator."""
+"""Simulation: material model, damping, time integration and the Simulate operator."""
+import math
+
 import bpy
 
+from ..solver.dynamics import damping_ratio
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
 
@@ -17,10 +20,22 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
             layout.prop(settings, "fung_stiffening")
         layout.prop(settings, "damping_mass")
         layout.prop(settings, "damping_stiffness")
+        frequencies = settings.frequencies
+        if frequencies and frequencies[0] > 0.0:
+            layout.label(text=damping_label(settings, frequencies[0]))
+        layout.prop(settings, "integrator")
+        layout.prop(settings, "substeps")
         draw_frame_range(layout, settings)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
         draw_bake_buttons(layout)
+
+
+def damping_label(settings, frequency_hz):
+    """The Rayleigh damping as a damping ratio at the first mode (frequency in Hz)."""
+    zeta = damping_ratio(settings.damping_mass, settings.damping_stiffness,
+                         2.0 * math.pi * frequency_hz)
+    return f"Damping ratio at mode 1 ({frequency_hz:.3g} Hz): {100.0 * zeta:.3g} %"
 
 
 CLASSES = (RS_ELASTIC_PT_simulate,)

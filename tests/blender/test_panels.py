@@ -1,5 +1,7 @@
 """Panels draw without error and show what the issue promises (background mode never draws them,
 so they are drawn here into a recording layout that checks every property it is given)."""
+import math
+
 import bpy
 
 from blender_helpers import make_bar
@@ -73,6 +75,12 @@ def test_panels_show_counts_frequencies_and_mnf(ext):
     assert ("label", f"MNF {s.mnf:.4g} rad/s") in after
     assert ("list", "mode_results") in after
     assert ("prop", "show_tets") in after and ("prop", "preview_amplitude") in after
+    # The Rayleigh damping shown as a damping ratio at the first mode: alpha/(2 w1) + beta w1/2.
+    w1 = 2.0 * math.pi * s.frequencies[0]
+    zeta = s.damping_mass / (2.0 * w1) + s.damping_stiffness * w1 / 2.0
+    assert ("label", f"Damping ratio at mode 1 ({s.frequencies[0]:.3g} Hz): "
+                     f"{100.0 * zeta:.3g} %") in after
+    assert ("prop", "integrator") in after and ("prop", "substeps") in after
 
 
 def test_panel_without_a_mesh_says_so(ext):

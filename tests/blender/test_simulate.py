@@ -123,3 +123,32 @@ def test_a_simulated_take_is_the_input_of_a_space_time_edit(ext):
     at_edit = np.abs(edited[29] - take[29]).max()
     print(f"take followed to {early:.3g} m early on; moved {at_edit:.3g} m at the edit")
     assert early < 0.1 * at_edit
+
+
+def test_simulation_follows_the_integrator_and_substeps_settings(ext):
+    """The object's integrator and substeps reach the solver; 0 substeps is the automatic rule
+    (dt w_max <= 1), and a bake at 48 fps repeats the 24 fps bake on their common frames (the
+    motion does not depend on the frame rate beyond sampling)."""
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 25
+    obj = prepared(make_bar(cuts=3))
+    dynamics = ext.solver.dynamics
+    sim = ext.bridge.simulation_inputs.gather(obj, scene).simulation
+    assert sim.integrator == "newmark" and obj.rs_elastic.substeps == 0
+    assert sim.substeps == dynamics.automatic_substeps(1.0 / scene.render.fps, sim.omega[-1])
+    assert sim.dt * sim.omega[-1] <= 1.0 + 1e-12
+    obj.rs_elastic.integrator, obj.rs_elastic.substeps = 'IMPLICIT_EULER', 3
+    sim = ext.bridge.simulation_inputs.gather(obj, scene).simulation
+    assert sim.integrator == "implicit_euler" and sim.substeps == 3
+    assert sim.dt == pytest.approx(1.0 / (3 * scene.render.fps))
+    obj.rs_elastic.integrator, obj.rs_elastic.substeps = 'NEWMARK', 0
+    tips = []
+    for fps, end in ((24, 25), (48, 49)):
+        scene.render.fps, scene.frame_end = fps, end
+        assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+        tips.append(baked_positions(obj, range(1, end + 1, fps // 24))[:, :, 2].min(axis=1))
+    sag = np.abs(tips[0] - tips[0][0]).max()
+    print(f"tip at 24 and 48 fps over 1 s: largest difference {np.abs(tips[0] - tips[1]).max():.2e}"
+          f" m, sag {sag:.3f} m")
+    assert sag > 0.01
+    assert np.abs(tips[0] - tips[1]).max() <= 0.02 * sag

@@ -9,8 +9,11 @@ Bodies are built with ``reduced.prepare_reduced_rs`` (modes, second-order basis,
 sizes chosen to keep the whole file near half a minute.
 """
 
+import time
+
 import numpy as np
 import pytest
+import scipy.optimize
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
@@ -208,7 +211,7 @@ def test_free_fall_follows_half_g_t_squared_without_rotation(free_body):
     """Released while vibrating (mode 1 at 0.5 rad): the centre of mass falls exactly as implicit
     Euler's recursion (1/2 g t^2 + 1/2 g h t), and the body does not start to spin."""
     h = 1.0 / 60.0
-    sim = simulation(free_body, h, gravity=GRAVITY, free=True)
+    sim = simulation(free_body, h, gravity=GRAVITY, free=True, integrator="implicit_euler")
     s0 = np.zeros(8)
     s0[0] = 0.5 / np.linalg.norm(free_body["modal_rs"][:, :3, 0], axis=1).max()
     sim.set_state(s0)
@@ -243,7 +246,7 @@ def test_free_body_spins_and_falls(free_body):
     dissipation) its size, and the body turns by about omega t."""
     h = 1.0 / 240.0
     w0, v0 = np.array([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0])
-    sim = simulation(free_body, h, gravity=GRAVITY, free=True)
+    sim = simulation(free_body, h, gravity=GRAVITY, free=True, integrator="implicit_euler")
     sim.set_state(np.zeros(8), linear_velocity=v0, angular_velocity=w0)
     trajectory = sim.run(120)
     x = positions(free_body, trajectory)
@@ -271,7 +274,8 @@ def soft_run():
     gravity swings it down through rotations beyond 90 deg (3 s, mass damping 0.5/s)."""
     body = build_body((0.2, 0.05, 0.05), (16, 4, 4), 1e4, 0.45, num_modes=12, max_size=80,
                       max_tets=150, num_poses=60, num_snapshots=100)
-    sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5)
+    sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5,
+                     integrator="implicit_euler")
     energies = [sim.energy()]
     trajectory = sim.run(72, callback=lambda *_: energies.append(sim.energy()))
     return body, trajectory, energies
@@ -302,6 +306,35 @@ def test_soft_body_stays_finite_through_large_rotations(soft_run):
     assert np.all(np.isfinite(x))
     assert rotation > 90.0
     assert np.all(np.abs(volumes - 1.0) <= 0.10)
+
+
+def test_newmark_soft_body_stays_bounded_through_large_rotations(soft_run):
+    """The jelly of ``soft_run`` on the default Newmark, one step per frame (dt w_max = 3.2,
+    far beyond the substep rule), swinging past 90 degrees: stays finite, keeps its volume
+    within 10 %, and its total energy never rises above where it started (mass damping 0.5/s
+    takes energy out; the trapezoidal rule on the nonlinear RS map must not put any in)."""
+    body = soft_run[0]
+    sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5)
+    energies = [sim.energy()]
+    trajectory = sim.run(72, callback=lambda *_: energies.append(sim.energy()))
+    X, T = body["X"], body["T"]
+    x = positions(body, trajectory)
+    rest = rs.volume(X, T, X)
+    volumes = np.array([rs.volume(X, T, frame) / rest for frame in x])
+    rotation = max(np.degrees(np.linalg.norm(rs.pose_to_rs(X, T, frame)[0][:, :3], axis=1)).max()
+                   for frame in x[::4])
+    total = np.array([e["total"] for e in energies])
+    scale = np.abs([e["gravity"] for e in energies]).max()
+    print(f"Newmark jelly at h = 1/24: largest tet rotation {rotation:.0f} deg, volume ratio in "
+          f"[{volumes.min():.3f}, {volumes.max():.3f}], total energy {total[0]:.4f} -> "
+          f"{total[-1]:.4f} J, largest {total.max():.4f} J, largest step rise "
+          f"{np.diff(total).max():+.2e} J (scale {scale:.3f} J); "
+          f"{trajectory.iterations[1:].mean():.2f} Newton iterations per step")
+    assert np.all(np.isfinite(x))
+    assert rotation > 90.0
+    assert np.all(np.abs(volumes - 1.0) <= 0.10)
+    assert total.max() <= total[0] + 1e-6 * scale
+    assert total[-1] < total[0] - 0.3 * scale
 
 
 # 5. Nonlinear materials in the integrator -----------------------------------------------------
@@ -347,7 +380,8 @@ def test_energy_cubature_simulation_tracks_exact_potential(soft_run):
     for potential in (nonlinear_potential(body, "STVK"),
                       nonlinear_potential(body, "STVK", (tets, weights))):
         sim = dynamics.Simulation(body["deformer"], body["X"], body["masses"], potential,
-                                  1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5)
+                                  1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5,
+                                  integrator="implicit_euler")
         runs.append(positions(body, sim.run(48)))
     error = np.abs(runs[0] - runs[1]).max() / body["diagonal"]
     print(f"StVK with {len(tets)}-tet energy cubature (training residual "
@@ -369,7 +403,8 @@ def test_trajectory_matches_full_space_reference(bar):
     """Released straight under gravity it drops its tip by ~1.1 m (of 4 m) in 1.2 s; every node
     stays within 5 % of the diagonal of a full-space corotational implicit Euler."""
     h, steps, alpha = 1.0 / 30.0, 36, 1.0
-    trajectory = simulation(bar, h, gravity=GRAVITY, mass_damping=alpha).run(steps)
+    trajectory = simulation(bar, h, gravity=GRAVITY, mass_damping=alpha,
+                            integrator="implicit_euler").run(steps)
     x = positions(bar, trajectory)
     reference = FullSpaceCorotational(bar["X"], bar["T"], bar["masses"], bar["mu"], bar["lam"],
                                       h, GRAVITY, bar["pins"], mass_damping=alpha)
@@ -476,7 +511,8 @@ def test_linear_modes_give_closed_form_damped_implicit_euler(bar):
     h, alpha, beta = 1.0 / 24.0, 0.7, 0.02
     sim = dynamics.Simulation(reduced.LinearDeformer(12, W), bar["X"], bar["masses"],
                               bar["potential"], h, gravity=GRAVITY, mass_damping=alpha,
-                              stiffness_damping=beta, tolerance=1e-12)
+                              stiffness_damping=beta, tolerance=1e-12,
+                              integrator="implicit_euler")
     trajectory = sim.run(20)
     force = W.T @ (np.repeat(bar["masses"], 3) * np.tile(GRAVITY, len(bar["X"])))
     lhs = (1.0 + alpha * h) / h ** 2 + (1.0 + beta / h) * lam
@@ -524,3 +560,176 @@ def test_run_reports_progress_and_cancels(bar):
     assert len(cancelled.value.trajectory.times) == 3           # start + 2 steps before cancel
     with pytest.raises(ValueError, match="free body"):
         simulation(bar, 0.1, free=True, frame_motion=sideways(1.0, 1.0))
+    with pytest.raises(ValueError, match="integrator"):
+        simulation(bar, 0.1, integrator="verlet")
+    for bad in (-1, 2.5, dynamics.MAX_SUBSTEPS + 1):
+        with pytest.raises(ValueError, match="substeps"):
+            simulation(bar, 0.1, substeps=bad)
+
+
+# 7. Newmark average acceleration: energy, period, damping ratio, frame rate -------------------
+
+@pytest.fixture(scope="module")
+def ringing_bar():
+    """Pinned 1 x 0.1 x 0.1 m bar, 20 x 2 x 2 cells (480 tets), E = 2.5e7 Pa, nu = 0.3, 8 modes
+    (f1 = 3.3 Hz, the issue's body), and its first mode scaled to a 1 cm tip displacement."""
+    body = build_body((1.0, 0.1, 0.1), (20, 2, 2), 2.5e7, 0.3, num_modes=8, max_size=40,
+                      max_tets=80, num_poses=40, num_snapshots=50)
+    start = np.zeros(8)
+    start[0] = 0.01 / np.abs(body["modes"].vectors[:, 0]).max()
+    body["start"] = start
+    return body
+
+
+def ring(body, fps, seconds=2.0, **kwargs):
+    """Release the bar from its first mode at rest, no gravity: (times (F,), tip signal (F,)
+    [m] along the initial tip displacement, the simulation, wall seconds)."""
+    sim = simulation(body, 1.0 / fps, **kwargs)
+    sim.set_state(body["start"])
+    start = time.perf_counter()
+    trajectory = sim.run(int(round(seconds * fps)))
+    seconds = time.perf_counter() - start
+    tip = body["X"][:, 0] > 1.0 - 1e-9
+    d = (positions(body, trajectory) - body["X"])[:, tip].mean(axis=1)
+    return trajectory.times, d @ d[0] / np.linalg.norm(d[0]), sim, seconds
+
+
+def damped_sine(t, decay, omega, a, b):
+    return np.exp(-decay * t) * (a * np.cos(omega * t) + b * np.sin(omega * t))
+
+
+def fit_ring(t, u, omega_guess):
+    """Least-squares exp(-sigma t)(a cos wt + b sin wt) through the samples: (sigma [1/s],
+    w [rad/s], largest residual relative to the start amplitude). Fitting every sample
+    measures the envelope without the 9 % a 24 fps sampling of a 3.3 Hz peak can miss."""
+    p, _ = scipy.optimize.curve_fit(damped_sine, t, u, p0=(0.0, omega_guess, u[0], 0.0))
+    return p[0], p[1], np.abs(damped_sine(t, *p) - u).max() / abs(u[0])
+
+
+def test_undamped_bar_keeps_its_amplitude_and_period(ringing_bar):
+    """No damping, 24 fps, automatic substeps: after 2 s the bar keeps >= 90 % of its amplitude
+    and its period is within 2 % of 1/f1 (f1 from the modal analysis). Implicit Euler at one
+    step per frame, the old default, loses nearly all of it (the test can tell them apart)."""
+    omega_1 = np.sqrt(ringing_bar["modes"].eigenvalues[0])
+    t, u, sim, seconds = ring(ringing_bar, 24, substeps=0)
+    decay, omega, residual = fit_ring(t, u, omega_1)
+    kept, period_error = np.exp(-decay * t[-1]), omega_1 / omega - 1.0
+    last_cycle = np.abs(u[t > t[-1] - 2.0 * np.pi / omega]).max() / abs(u[0])
+    t_ie, u_ie, _, _ = ring(ringing_bar, 24, integrator="implicit_euler")
+    kept_ie = np.exp(-fit_ring(t_ie, u_ie, omega_1)[0] * t_ie[-1])
+    print(f"undamped 3.3 Hz bar, 2 s at 24 fps ({sim.substeps} substeps, {seconds:.2f} s): "
+          f"amplitude kept {kept:.4f} (largest sample of the last cycle {last_cycle:.3f}), "
+          f"period error {100 * period_error:+.3f} %, fit residual {100 * residual:.2f} %; "
+          f"implicit Euler, 1 step per frame: amplitude kept {kept_ie:.2e}")
+    assert residual < 0.02                                # the fit describes the motion
+    assert kept >= 0.90 and last_cycle >= 0.90 * np.cos(np.pi * omega / (2 * np.pi * 24))
+    assert abs(period_error) <= 0.02
+    assert kept_ie < 0.5
+
+
+@pytest.mark.parametrize("stiffness_share", [0.0, 1.0])
+def test_damping_ratio_sets_the_decay_per_cycle(ringing_bar, stiffness_share):
+    """zeta = 5 % at the first mode (all mass damping, or all stiffness damping): the decay per
+    cycle matches exp(-2 pi zeta / sqrt(1 - zeta^2)) within 10 %."""
+    zeta = 0.05
+    omega_1 = np.sqrt(ringing_bar["modes"].eigenvalues[0])
+    alpha, beta = dynamics.rayleigh_from_damping_ratio(zeta, omega_1, stiffness_share)
+    assert dynamics.damping_ratio(alpha, beta, omega_1) == pytest.approx(zeta, rel=1e-12)
+    t, u, sim, _ = ring(ringing_bar, 24, substeps=0, mass_damping=alpha, stiffness_damping=beta)
+    decay, omega, residual = fit_ring(t, u, omega_1)
+    measured = np.exp(-decay * 2.0 * np.pi / omega)
+    expected = np.exp(-2.0 * np.pi * zeta / np.sqrt(1.0 - zeta ** 2))
+    print(f"zeta 5 % (alpha {alpha:.3f} 1/s, beta {beta:.2e} s): decay per cycle {measured:.4f}, "
+          f"expected {expected:.4f} ({100 * (measured / expected - 1):+.2f} %), fit residual "
+          f"{100 * residual:.2f} %")
+    assert residual < 0.02
+    assert abs(measured / expected - 1.0) <= 0.10
+
+
+def test_motion_does_not_depend_on_the_frame_rate(ringing_bar):
+    """The same undamped bar baked at 24, 30 and 60 fps (automatic substeps): on their common
+    frames (every 1/6 s) the tip agrees within 2 % of its amplitude, with each other and with a
+    reference whose internal step is 4 times finer (so the agreement is convergence in the
+    step, not only the substeps landing on one dt). Implicit Euler at one step per frame
+    disagrees by far more."""
+    runs, spread = {}, {}
+    for integrator, substeps in (("newmark", 0), ("implicit_euler", 1)):
+        for fps in (24, 30, 60):
+            t, u, sim, seconds = ring(ringing_bar, fps, integrator=integrator, substeps=substeps)
+            runs[integrator, fps] = u[::fps // 6], sim.substeps, seconds
+        common = np.array([runs[integrator, fps][0] for fps in (24, 30, 60)])
+        spread[integrator] = np.abs(common - common[2]).max() / abs(common[0, 0])
+    fine = ring(ringing_bar, 60, substeps=4 * runs["newmark", 60][1])[1][::10]
+    common = np.array([runs["newmark", fps][0] for fps in (24, 30, 60)])
+    converged = np.abs(common - fine).max() / abs(fine[0])
+    print("fps agreement: " + ", ".join(
+        f"{fps} fps {runs['newmark', fps][1]} substeps {runs['newmark', fps][2]:.2f} s"
+        for fps in (24, 30, 60))
+        + f"; largest difference {100 * spread['newmark']:.2e} % of the amplitude, "
+          f"{100 * converged:.2f} % from the 4x finer step (implicit Euler 1 step per frame: "
+          f"{100 * spread['implicit_euler']:.1f} %)")
+    assert spread["newmark"] <= 0.02 and converged <= 0.02
+    assert spread["implicit_euler"] > 0.1
+
+
+def test_newmark_free_fall_is_exact(free_body):
+    """Released while vibrating (mode 1 at 0.5 rad), undamped, 3 substeps: the trapezoidal rule
+    is exact for constant acceleration, so the centre of mass falls exactly 1/2 g t^2 (implicit
+    Euler's recursion adds 1/2 g dt t); the body does not spin and keeps vibrating."""
+    h = 1.0 / 60.0
+    sim = simulation(free_body, h, gravity=GRAVITY, free=True, substeps=3)
+    s0 = np.zeros(8)
+    s0[0] = 0.5 / np.linalg.norm(free_body["modal_rs"][:, :3, 0], axis=1).max()
+    sim.set_state(s0)
+    trajectory = sim.run(60)
+    x = positions(free_body, trajectory)
+    com = centre_of_mass(free_body, x)
+    t = trajectory.times
+    exact = centre_of_mass(free_body, free_body["X"]) + 0.5 * GRAVITY * (t ** 2)[:, None]
+    error = np.abs(com - exact).max()
+    angle = np.linalg.norm(Rotation.from_matrix(trajectory.rotations).as_rotvec(), axis=1).max()
+    vibration = np.abs(trajectory.coords[:, 0]).max() / s0[0]
+    print(f"Newmark free fall 1 s: |com - (x0 + 1/2 g t^2)| {error:.1e} m; frame angle "
+          f"{np.degrees(angle):.3f} deg; vibration amplitude kept {vibration:.2f}")
+    assert error < 1e-9
+    assert angle < np.radians(0.2)
+    assert vibration > 0.9
+
+
+def test_linear_modes_give_textbook_newmark(bar):
+    """With q = s (``reduced.LinearDeformer``, B = W mass-orthonormal) and the linear material
+    the equations are s'' + (alpha + beta Lambda) s' + Lambda s = W^T M g: the steps equal the
+    textbook Newmark recursion (beta = 1/4, gamma = 1/2) solved for the acceleration,
+    (1 + dt/2 C + dt^2/4 Lambda) a' = f - C (v + dt/2 a) - Lambda (s + dt v + dt^2/4 a)."""
+    W, lam = bar["modes"].vectors, bar["modes"].eigenvalues
+    h, alpha, beta, substeps = 1.0 / 24.0, 0.7, 0.02, 2
+    sim = dynamics.Simulation(reduced.LinearDeformer(12, W), bar["X"], bar["masses"],
+                              bar["potential"], h, gravity=GRAVITY, mass_damping=alpha,
+                              stiffness_damping=beta, tolerance=1e-12, substeps=substeps)
+    trajectory = sim.run(20)
+    force = W.T @ (np.repeat(bar["masses"], 3) * np.tile(GRAVITY, len(bar["X"])))
+    dt, C = h / substeps, alpha + beta * lam
+    s, v, a = np.zeros(12), np.zeros(12), force.copy()       # at rest: a_0 = f
+    expected = [s]
+    for _ in range(20 * substeps):
+        a_new = (force - C * (v + 0.5 * dt * a) - lam * (s + dt * v + 0.25 * dt * dt * a)) / (
+            1.0 + 0.5 * dt * C + 0.25 * dt * dt * lam)
+        s = s + dt * v + 0.25 * dt * dt * (a + a_new)
+        v, a = v + 0.5 * dt * (a + a_new), a_new
+        expected.append(s)
+    np.testing.assert_allclose(trajectory.coords, expected[::substeps], rtol=1e-9,
+                               atol=1e-9 * np.abs(expected[-1]).max())
+
+
+def test_automatic_substeps_bound_the_highest_mode():
+    """dt w_max <= 1 with the fewest substeps, capped; and the settings are checked."""
+    assert dynamics.automatic_substeps(1.0 / 24.0, 24.0) == 1
+    assert dynamics.automatic_substeps(1.0 / 24.0, 24.0 * 1.0001) == 2
+    assert dynamics.automatic_substeps(1.0 / 24.0, 225.0) == 10          # 225/24 = 9.4
+    assert dynamics.automatic_substeps(1.0 / 24.0, 1e9) == dynamics.MAX_AUTO_SUBSTEPS
+    omega = np.array([2.0, 40.0])
+    alpha, beta = dynamics.rayleigh_from_damping_ratio(0.1, 2.0, 0.5)
+    np.testing.assert_allclose(dynamics.damping_ratio(alpha, beta, omega),
+                               [0.1, 0.05 * 2.0 / 40.0 + 0.05 * 40.0 / 2.0], rtol=1e-12)
+    with pytest.raises(ValueError, match="positive"):
+        dynamics.damping_ratio(0.1, 0.0, 0.0)
