@@ -213,3 +213,16 @@ def preview_pose(obj, method, amplitude):
     pose = evaluated_vertices(obj)
     obj.rs_elastic.preview_enabled = False
     return pose
+
+
+def add_tip_handle(obj, keys):
+    """Bind a handle to the bar's tip (the vertices at x = 4) and key its Empty at `keys`
+    {frame: location}. Returns (empty, tip mask)."""
+    tip = vertices(obj)[:, 0] > 4.0 - 1e-9
+    obj.vertex_groups.new(name="Tip").add([int(i) for i in np.flatnonzero(tip)], 1.0, 'REPLACE')
+    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
+    empty = obj.rs_elastic.handles[0].empty
+    for frame, location in keys.items():
+        empty.location = location
+        empty.keyframe_insert("location", frame=frame)
+    return empty, tip

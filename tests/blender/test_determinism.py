@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import diagonal, make_bar, vertices
+from blender_helpers import add_tip_handle, diagonal, make_bar, vertices
 from conftest import ROOT, USER_DIR
 
 # In a new Blender process: open the file, bake it as `bake_steps` says, dump every bake's
@@ -76,13 +76,7 @@ def saved_scene(tmp_path):
     obj.rs_elastic.edge_length = 0.1
     obj.rs_elastic.num_modes = 6
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    tip = np.flatnonzero(vertices(obj)[:, 0] > 4.0 - 1e-9)
-    obj.vertex_groups.new(name="Tip").add([int(i) for i in tip], 1.0, 'REPLACE')
-    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
-    empty = obj.rs_elastic.handles[0].empty
-    for frame, location in {12: (3.6, 0.5, 1.8), 24: (3.8, 1.2, 0.4)}.items():
-        empty.location = location
-        empty.keyframe_insert("location", frame=frame)
+    add_tip_handle(obj, {12: (3.6, 0.5, 1.8), 24: (3.8, 1.2, 0.4)})
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 30
     blend = tmp_path / "shot.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import diagonal, evaluated_vertices, fingerprint, make_bar, vertices
+from blender_helpers import add_tip_handle, diagonal, evaluated_vertices, fingerprint, make_bar, vertices
 from conftest import ROOT, USER_DIR
 
 
@@ -20,14 +20,7 @@ def prepared_bar_with_tip_handle(keys):
     obj.rs_elastic.num_modes = 6
     bpy.context.view_layer.update()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    tip = vertices(obj)[:, 0] > 4.0 - 1e-9
-    group = obj.vertex_groups.new(name="Tip")
-    group.add([int(i) for i in np.flatnonzero(tip)], 1.0, 'REPLACE')
-    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
-    empty = obj.rs_elastic.handles[0].empty
-    for frame, location in keys.items():
-        empty.location = location
-        empty.keyframe_insert("location", frame=frame)
+    empty, tip = add_tip_handle(obj, keys)
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 60
     return obj, empty, tip
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import make_active, make_bar, user_fingerprint, vertices
+from blender_helpers import add_tip_handle, make_active, make_bar, user_fingerprint, vertices
 
 TIP_KEYS = {10: (4.0, 0.5, 1.5), 20: (4.0, 0.5, 0.0)}
 
@@ -22,13 +22,7 @@ def prepared_file(tmp_path_factory):
     obj.rs_elastic.edge_length = 0.1
     obj.rs_elastic.num_modes = 5
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    tip = np.flatnonzero(vertices(obj)[:, 0] > 4.0 - 1e-9)
-    obj.vertex_groups.new(name="Tip").add([int(i) for i in tip], 1.0, 'REPLACE')
-    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
-    empty = obj.rs_elastic.handles[0].empty
-    for frame, location in TIP_KEYS.items():
-        empty.location = location
-        empty.keyframe_insert("location", frame=frame)
+    add_tip_handle(obj, TIP_KEYS)
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 24
     folder = tmp_path_factory.mktemp("stale")
     bpy.ops.wm.save_as_mainfile(filepath=str(folder / "shot.blend"))

@@ -293,14 +293,21 @@ def test_total_energy_never_increases_with_damping(soft_run):
     assert total[-1] < total[0] - 0.5 * scale          # it did fall and dissipate
 
 
-def test_soft_body_stays_finite_through_large_rotations(soft_run):
-    body, trajectory, _ = soft_run
+def volumes_and_largest_rotation(body, x):
+    """Volume of each frame of x (F, N, 3) relative to rest, and the largest tet rotation in
+    degrees (over every fourth frame)."""
     X, T = body["X"], body["T"]
-    x = positions(body, trajectory)
     rest = rs.volume(X, T, X)
     volumes = np.array([rs.volume(X, T, frame) / rest for frame in x])
     rotation = max(np.degrees(np.linalg.norm(rs.pose_to_rs(X, T, frame)[0][:, :3], axis=1)).max()
                    for frame in x[::4])
+    return volumes, rotation
+
+
+def test_soft_body_stays_finite_through_large_rotations(soft_run):
+    body, trajectory, _ = soft_run
+    x = positions(body, trajectory)
+    volumes, rotation = volumes_and_largest_rotation(body, x)
     print(f"soft body at h = 1/24: largest tet rotation {rotation:.0f} deg, volume ratio in "
           f"[{volumes.min():.3f}, {volumes.max():.3f}]")
     assert np.all(np.isfinite(x))
@@ -317,12 +324,8 @@ def test_newmark_soft_body_stays_bounded_through_large_rotations(soft_run):
     sim = simulation(body, 1.0 / 24.0, gravity=GRAVITY, mass_damping=0.5)
     energies = [sim.energy()]
     trajectory = sim.run(72, callback=lambda *_: energies.append(sim.energy()))
-    X, T = body["X"], body["T"]
     x = positions(body, trajectory)
-    rest = rs.volume(X, T, X)
-    volumes = np.array([rs.volume(X, T, frame) / rest for frame in x])
-    rotation = max(np.degrees(np.linalg.norm(rs.pose_to_rs(X, T, frame)[0][:, :3], axis=1)).max()
-                   for frame in x[::4])
+    volumes, rotation = volumes_and_largest_rotation(body, x)
     total = np.array([e["total"] for e in energies])
     scale = np.abs([e["gravity"] for e in energies]).max()
     print(f"Newmark jelly at h = 1/24: largest tet rotation {rotation:.0f} deg, volume ratio in "
