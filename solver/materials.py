@@ -255,6 +255,22 @@ class ReducedPotential:
                    np.abs(np.asarray(volumes)[tets]) * np.asarray(weights, dtype=np.float64),
                    tets=tets)
 
+    def to_arrays(self):
+        """The quadrature as plain arrays, for a cache file: ``tets`` (C,) int64 (absent for the
+        exact all-tet sum), ``weights`` (C,) [m^3] and ``strain_modes`` (C, 6, m). The material
+        is not included: ``from_arrays`` takes it, so one file serves any material whose
+        cubature it is."""
+        arrays = dict(weights=self.weights, strain_modes=self.strain_modes)
+        if self.tets is not None:
+            arrays["tets"] = self.tets
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, material, arrays):
+        """The potential of ``material`` over the quadrature saved by ``to_arrays``: evaluates
+        bit for bit like the saved one (the same arrays, the same arithmetic)."""
+        return cls(material, arrays["strain_modes"], arrays["weights"], tets=arrays.get("tets"))
+
     @property
     def is_quadratic(self):
         """True for the linear material: V = 1/2 s^T K s with K = ``rest_hessian``."""
@@ -307,7 +323,12 @@ def prepare_potential(material, modal_rs, volumes, eigenvalues=None, num_poses=2
     by default: poses far beyond what a simulation reaches spend tets on strains it never
     sees). modal_rs (E, 9, m), volumes (E,) [m^3], eigenvalues (m,) weight the modes of mixed
     poses; seed makes the result reproducible. info: ``tets``, ``weights``,
-    ``relative_residual`` (empty for Linear).
+    ``relative_residual`` (empty for Linear). progress: as for ``train_energy_cubature``.
+
+    What the cubature depends on (a cache key needs all of it): the modes (modal_rs, volumes,
+    eigenvalues), the training settings and every parameter of the material. Young's modulus
+    only scales StVK and Fung, and each pose's fit is normalised, yet it still changes the
+    rounding, and with it which of two mirror-image tets of equal score a pick takes.
     """
     if isinstance(material, Linear):
         return ReducedPotential.exact(material, modal_rs, volumes), {}
@@ -335,7 +356,8 @@ def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets
     line search's objective consistent with them). Tet e's column holds its own contribution
     V_e [U_e^T dpsi_e, psi_e] under the same scaling; ``cubature.greedy_nnls`` picks the tets,
     scoring ``candidates`` random tets per pick (columns computed on demand unless the whole
-    matrix is small).
+    matrix is small). progress: optional callable(fraction, message), called between poses and
+    between picks; an exception it raises (a cancel) stops the training.
 
     Returns tets (C,), weights (C,) > 0 and info dict (``history``, ``relative_residual``).
     """
@@ -343,9 +365,11 @@ def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets
     volumes = np.abs(np.asarray(volumes, dtype=np.float64))
     Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
     exact = ReducedPotential.exact(material, modal_rs, volumes)
-    if progress is not None:
-        progress(0.0, "exact forces of the training poses")
-    rows = np.array([_pose_row(exact, z) for z in Z])                        # (F, m + 1)
+    rows = np.empty((len(Z), exact.num_coords + 1))                          # (F, m + 1)
+    for t, z in enumerate(Z):       # one all-tet evaluation per pose: report (and cancel) between
+        if progress is not None:
+            progress(0.1 * t / len(Z), f"exact forces of training pose {t + 1}/{len(Z)}")
+        rows[t] = _pose_row(exact, z)
     scale = np.concatenate([np.repeat(np.maximum(np.linalg.norm(rows[:, :-1], axis=1), 1e-300)
                                       [:, None], exact.num_coords, axis=1),
                             np.maximum(np.abs(rows[:, -1:]), 1e-300)], axis=1)

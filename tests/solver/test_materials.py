@@ -220,3 +220,23 @@ def test_prepare_potential_is_exact_for_linear_and_a_cubature_otherwise(bar):
     np.testing.assert_array_equal(stvk.tets, info["tets"])
     np.testing.assert_allclose(stvk.rest_hessian, linear.rest_hessian, rtol=0.05,
                                atol=0.05 * linear.rest_hessian.max())
+
+
+@pytest.mark.parametrize("material", ALL, ids=IDS)
+def test_a_saved_and_loaded_potential_evaluates_bit_for_bit_alike(bar, material, tmp_path):
+    """to_arrays / from_arrays through an .npz file: the same energy, force and Hessian."""
+    potential, _ = materials.prepare_potential(material, bar["modal_rs"], bar["volumes"],
+                                               bar["eigenvalues"], num_poses=30, max_tets=30)
+    path = tmp_path / "potential.npz"
+    np.savez(path, **potential.to_arrays())
+    with np.load(path, allow_pickle=False) as data:
+        loaded = materials.ReducedPotential.from_arrays(material, dict(data))
+    if potential.tets is None:
+        assert loaded.tets is None
+    else:
+        np.testing.assert_array_equal(loaded.tets, potential.tets)
+    assert loaded.is_quadratic == potential.is_quadratic
+    for s in rotation_scaled_poses(bar, 3, 60.0, 11):
+        for got, want in zip(loaded.evaluate(s), potential.evaluate(s)):
+            np.testing.assert_array_equal(got, want)
+
