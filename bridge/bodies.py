@@ -3,10 +3,16 @@
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
 Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
 Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates).
+Stage 4 (energy, StVK and Fung only): the energy cubature of the material's reduced potential
+(`solver.materials.prepare_potential`). Linear needs none (its potential is an exact quadratic
+form), so it has no such stage and writes no file.
 
 Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
 key hashes the tet mesh *actually used* (its arrays) with the material and pins; the reduced key
-hashes the modes' arrays with the reduced settings. So stages of different runs can never mix.
+hashes the modes' arrays with the reduced settings; the energy key hashes the tets' and the
+modes' arrays (what the cubature is trained on) with the material kind, every material parameter
+it is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fung only) and the
+training settings. So stages of different runs can never mix.
 Each stage is cached in `//blendcache_<blend name>/<object>.<stage>.<key>.npz` (the temp folder for
 an unsaved file); a new preparation writes new files beside the old ones, so a cancelled one
 leaves the previous cache usable. Every loaded array is validated; on any doubt the file is
@@ -17,7 +23,10 @@ was made for), because fTetWild is not deterministic: re-preparing the same file
 and without the cache folder, reuses it, and only a new surface or new mesher settings replace it.
 
 Staleness: Prepare records a fingerprint of what it read (mesh, modifiers, pins, settings) in
-`obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares it with the object now.
+`obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares it with the object now. The
+material model is not part of it: Simulate trains (or loads) the energy cubature of whichever
+model is set, and `obj.rs_elastic["energy_cache"]` records the energy keys made for the current
+preparation, so that `prune` keeps and `persist` copies their files.
 """
 import collections
 import dataclasses
@@ -32,7 +41,7 @@ import bpy
 import numpy as np
 import scipy.sparse as sp
 
-from ..solver import cache, embed, fem, modes, reduced, rs, tetmesh
+from ..solver import cache, embed, fem, materials, modes, reduced, rs, tetmesh
 from . import scene
 from .jobs import Cancelled, Job
 from .scene import InputError
@@ -45,6 +54,10 @@ _MEMORY_LIMIT = 16
 
 TET_MESH = "tet_mesh"                 # obj.rs_elastic[TET_MESH]: {"key", "nodes", "tets"}
 PREPARED_INPUTS = "prepared_inputs"   # obj.rs_elastic[PREPARED_INPUTS]: the fingerprint at Prepare
+ENERGY_RECORD = "energy_cache"        # obj.rs_elastic[ENERGY_RECORD]: {"parent", "keys"} as JSON
+
+# How the energy cubature is trained (`materials.prepare_potential`); part of its key.
+ENERGY_TRAINING = dict(num_poses=200, max_tets=200, tol=1e-4, max_rotation=np.pi / 2, seed=0)
 
 
 @dataclasses.dataclass
@@ -71,6 +84,9 @@ class PreparedBody:
     linear_modes: modes.LinearModes
     deformer: reduced.ReducedRS = None      # None for a body prepared before reduced RS existed
     keys: tuple = ("", "", "")               # (tets, modes, reduced) keys it was made under
+    digests: tuple = ("", "")                # content digests of (tet_body, linear_modes)
+    energy: materials.ReducedPotential = None   # the energy cubature, if Prepare made one
+    energy_key: str = ""
 
     def surface_mode(self, index):
         """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
@@ -97,6 +113,8 @@ _SCHEMAS = {
     "reduced": {"cubature_tets": ("iu", ("C",)), "cubature_weights": ("f", ("C",)),
                 "projections": ("f", (None, None, None)), "modal_rs_cubature": ("f", (None, None, None)),
                 "linear_map": ("f", (None, None))},
+    "energy": {"tets": ("iu", ("C",)), "weights": ("f", ("C",)),
+               "strain_modes": ("f", ("C", 6, None))},
 }
 
 
@@ -135,7 +153,7 @@ def prune(obj):
     keep = {cache_file(cache_dirs()[0], obj.name, stage, key)
             for stage, key in _stage_keys(settings) if key}
     folder = cache_dirs()[0]
-    pattern = re.compile(re.escape(_safe_name(obj.name)) + r"\.(tets|modes|reduced)\.[0-9a-f]+\.npz$")
+    pattern = re.compile(re.escape(_safe_name(obj.name)) + r"\.(tets|modes|reduced|energy)\.[0-9a-f]+\.npz$")
     try:
         names = os.listdir(folder)
     except OSError:
@@ -151,7 +169,8 @@ def prune(obj):
 
 def _stage_keys(settings):
     return (("tets", settings.tets_key), ("modes", settings.prepared_key),
-            ("reduced", settings.reduced_key))
+            ("reduced", settings.reduced_key),
+            *(("energy", key) for key in _energy_record(settings)["keys"]))
 
 
 def _to_arrays(stage, value):
@@ -159,13 +178,20 @@ def _to_arrays(stage, value):
         return value.to_arrays()
     if stage == "modes":
         return _modes_to_arrays(value)
+    if stage == "energy":
+        return value.to_arrays()
     return value.save_arrays()
 
 
-def _from_arrays(stage, arrays, path):
-    """The stage's value from validated arrays; CacheCorrupt on any doubt."""
+def _from_arrays(stage, arrays, path, material=None):
+    """The stage's value from validated arrays (the energy stage's for `material`); CacheCorrupt
+    on any doubt."""
     sizes = cache.validate(arrays, _SCHEMAS[stage], path)
     try:
+        if stage == "energy":
+            if arrays["tets"].min(initial=0) < 0 or arrays["weights"].min(initial=0.0) < 0.0:
+                raise ValueError("negative tet index or weight")
+            return materials.ReducedPotential.from_arrays(material, arrays)
         if stage == "tets":
             if (arrays["tets"].min(initial=0) < 0 or arrays["tets"].max(initial=0) >= sizes["N"]
                     or tuple(arrays["phi_shape"])[1] != sizes["N"]):
@@ -210,8 +236,9 @@ def store_tet_mesh(obj, key, tet_body):
 
 def forget_prepared(obj):
     """Drop the record of a preparation (its keys stay in settings until the caller clears them)."""
-    if obj.rs_elastic.get(PREPARED_INPUTS) is not None:
-        del obj.rs_elastic[PREPARED_INPUTS]
+    for name in (PREPARED_INPUTS, ENERGY_RECORD):
+        if obj.rs_elastic.get(name) is not None:
+            del obj.rs_elastic[name]
 
 
 # --- what Prepare read, and whether it still holds (main thread) ------------------------------------
@@ -385,6 +412,7 @@ class BodyInputs:
     cubature_tets: int = 0         # reduced RS: largest cubature
     cubature_tolerance: float = 0.0
     training_poses: int = 0
+    energy: "EnergyInputs" = None   # set to train the energy cubature too (StVK / Fung)
 
     @functools.cached_property
     def tets_key(self):
@@ -401,6 +429,47 @@ class BodyInputs:
     def reduced_key(self, modes_digest):
         return cache.content_key("reduced", modes_digest, self.basis_size, self.cubature_tets,
                                  self.cubature_tolerance, self.training_poses)
+
+
+@dataclasses.dataclass
+class EnergyInputs:
+    """What the energy stage reads besides the prepared body (a main-thread snapshot)."""
+    object_name: str
+    cache_dirs: list
+    kind: str                  # "STVK" or "FUNG"
+    youngs: float              # [Pa]
+    poisson: float
+    fung_stiffening: float     # dimensionless; only Fung reads it
+
+    @functools.cached_property
+    def parameters(self):
+        """The material parameters the cubature is trained with (Fung's stiffening for Fung only:
+        StVK's cubature does not depend on it, so changing it reuses StVK's file)."""
+        stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
+        return (self.youngs, self.poisson) + stiffening
+
+    @functools.cached_property
+    def material(self):
+        mu, lam = fem.lame_parameters(self.youngs, self.poisson)
+        return materials.make_material(self.kind, mu, lam, fung_stiffening=self.fung_stiffening)
+
+    def key(self, parent):
+        """Key of the cubature for the prepared body whose `energy_parent` is parent."""
+        return cache.content_key("energy", parent, self.kind, self.parameters,
+                                 sorted(ENERGY_TRAINING.items()))
+
+    @property
+    def label(self):
+        return {"STVK": "StVK", "FUNG": "Fung"}[self.kind]
+
+
+def energy_inputs(obj):
+    """EnergyInputs of the object's material model, or None for Linear (which needs no cubature)."""
+    settings = obj.rs_elastic
+    if settings.material_model == 'LINEAR':
+        return None
+    return EnergyInputs(obj.name, cache_dirs(), settings.material_model, settings.youngs_modulus,
+                        settings.poisson_ratio, settings.fung_stiffening)
 
 
 def rest_surface(obj, depsgraph):
@@ -477,7 +546,7 @@ def _remember(key, value, parent):
         _MEMORY.popitem(last=False)
 
 
-def _read_file(folders, object_name, stage, key, parent, warn):
+def _read_file(folders, object_name, stage, key, parent, warn, material=None):
     """A valid cached value for this key (and parent digest), or None. A damaged file is
     reported once through warn() and removed, so it is rebuilt."""
     for folder in folders:
@@ -488,7 +557,7 @@ def _read_file(folders, object_name, stage, key, parent, warn):
                 continue
             if str(arrays.pop("parent_digest", "")) != parent:
                 continue     # made from other contents: not ours (cannot happen by key alone)
-            value = _from_arrays(stage, arrays, path)
+            value = _from_arrays(stage, arrays, path, material)
         except cache.CacheCorrupt as exc:
             warn(f"{exc}; rebuilding it")
             try:
@@ -515,7 +584,8 @@ def _cached_stage(inputs, stage, key, parent, compute, job, accept=lambda value:
     entry = _MEMORY.get(key)
     value = entry[0] if entry is not None and entry[1] == parent else None
     if value is None or not accept(value):
-        value = _read_file(inputs.cache_dirs, inputs.object_name, stage, key, parent, job.warn)
+        value = _read_file(inputs.cache_dirs, inputs.object_name, stage, key, parent, job.warn,
+                           getattr(inputs, "material", None))
     if value is None or not accept(value):
         value = compute()
         _save_cached(inputs, stage, key, value, parent, job)
@@ -592,8 +662,9 @@ def modes_stage(inputs, tet_body, job, tets_digest=None):
                          job, fits)
 
 
-def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None):
-    """The reduced RS deformer: from memory, the disk cache, or basis + cubature training."""
+def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.99):
+    """The reduced RS deformer: from memory, the disk cache, or basis + cubature training
+    (its progress runs from 0.72 to `end`)."""
     modes_digest = modes_digest or digest("modes", linear_modes)
 
     def compute():
@@ -607,7 +678,7 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None):
             X, T, masses, linear_modes.vectors, linear_modes.eigenvalues, recon,
             max_size=inputs.basis_size or None, max_tets=inputs.cubature_tets,
             tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
-            progress=lambda f, message: job.step(0.72 + 0.27 * f, f"Reduced RS: {message}"))
+            progress=lambda f, message: job.step(0.72 + (end - 0.72) * f, f"Reduced RS: {message}"))
         return deformer
 
     def fits(d):
@@ -617,16 +688,72 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None):
                          compute, job, fits)
 
 
+def energy_parent(body):
+    """Digest of what a body's energy cubature is trained on: its tets' and its modes' arrays."""
+    tets_digest, modes_digest = body.digests
+    if not (tets_digest and modes_digest):
+        tets_digest, modes_digest = digest("tets", body.tet_body), digest("modes", body.linear_modes)
+    return cache.content_key("energy parent", tets_digest, modes_digest)
+
+
+def _fits_body(body):
+    """accept() for an energy cubature: its tets and modal coordinates are the body's."""
+    def fits(potential):
+        return (potential.tets is not None and len(potential.tets) > 0
+                and int(potential.tets.max()) < len(body.tet_body.tets)
+                and potential.num_coords == len(body.linear_modes.eigenvalues))
+    return fits
+
+
+def cached_energy(energy, body):
+    """The body's energy cubature for EnergyInputs `energy` if it is in memory, else None."""
+    parent = energy_parent(body)
+    entry = _MEMORY.get(energy.key(parent))
+    if entry is None or entry[1] != parent or not _fits_body(body)(entry[0]):
+        return None
+    return entry[0]
+
+
+def energy_stage(energy, body, job, modal_rs=None, start=0.0, end=1.0):
+    """The reduced potential (`materials.ReducedPotential`) of EnergyInputs `energy` on the
+    PreparedBody: from memory, the disk cache, or trained (worker-thread safe; its progress runs
+    from `start` to `end`, and a cancel stops the training). modal_rs: optional callable giving
+    the body's (E, 9, m) modal RS coordinates, if the caller keeps them; computed otherwise."""
+    parent = energy_parent(body)
+    X, T = body.tet_body.nodes, body.tet_body.tets
+    title = f"{energy.label} energy cubature"
+
+    def compute():
+        job.step(start, f"{title}: RS coordinates of the modes")
+        stats["energy"] += 1
+        Y = modal_rs() if modal_rs is not None else rs.linear_rs(rs.rs_operator(X, T),
+                                                                 body.linear_modes.vectors)
+        potential, _ = materials.prepare_potential(
+            energy.material, Y, np.abs(fem.tet_volumes(X, T)),
+            eigenvalues=body.linear_modes.eigenvalues, **ENERGY_TRAINING,
+            progress=lambda f, message: job.step(start + (end - start) * f, f"{title}: {message}"))
+        return potential
+
+    return _cached_stage(energy, "energy", energy.key(parent), parent, compute, job,
+                         _fits_body(body))
+
+
 def prepare(inputs, job):
-    """All three stages, each keyed by the contents of the one before; returns a PreparedBody."""
+    """The three stages, each keyed by the contents of the one before, and the energy stage if
+    inputs.energy is set; returns a PreparedBody."""
     tet_body = tet_stage(inputs, job)
     tets_digest = digest("tets", tet_body)
     linear_modes = modes_stage(inputs, tet_body, job, tets_digest)
     modes_digest = digest("modes", linear_modes)
-    deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest)
-    job.step(1.0, "Done")
+    deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest,
+                             end=0.99 if inputs.energy is None else 0.9)
     keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
-    return PreparedBody(tet_body, linear_modes, deformer, keys)
+    body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest))
+    if inputs.energy is not None:
+        body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99)
+        body.energy_key = inputs.energy.key(energy_parent(body))
+    job.step(1.0, "Done")
+    return body
 
 
 # --- for the preview and later operators -------------------------------------------------------------
@@ -665,6 +792,27 @@ def load_prepared(obj):
         settings.reduced_basis_count = body.deformer.basis_size
         settings.cubature_count = len(body.deformer.cubature_tets)
     return body
+
+
+def _energy_record(settings):
+    try:
+        record = json.loads(settings.get(ENERGY_RECORD) or "{}")
+        return {"parent": str(record.get("parent", "")), "keys": [str(k) for k in record["keys"]]}
+    except (ValueError, TypeError, KeyError, AttributeError):
+        return {"parent": "", "keys": []}
+
+
+def record_energy(obj, parent, key=""):
+    """Note that the energy cubature `key` was made for the preparation whose energy parent is
+    `parent` (main thread). Keys of another preparation are forgotten (and `prune` removes
+    their files); `key` "" only starts the record of a new preparation."""
+    old = _energy_record(obj.rs_elastic)
+    keys = list(old["keys"]) if old["parent"] == parent else []
+    if key and key not in keys:
+        keys.append(key)
+    new = {"parent": parent, "keys": keys}
+    if new != old:
+        obj.rs_elastic[ENERGY_RECORD] = json.dumps(new)
 
 
 def persist(obj):

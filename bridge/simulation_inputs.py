@@ -7,6 +7,7 @@ from ..solver import dynamics, fem, materials
 from . import bake, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
+from . import bodies, jobs, rs_tools     # the body's energy cubature (its fourth cache stage)
 
 
 @dataclasses.dataclass
@@ -39,18 +40,50 @@ def object_motion(obj, blender_scene, frames):
     return U @ Vt, matrices[:, :3, 3]
 
 
+def energy_work(obj):
+    """Main thread, before `gather`: None when the body's potential is at hand (Linear, or its
+    energy cubature in memory), else work(job) for a worker thread that loads the cubature from
+    the body's cache or trains it (progress, Esc), and leaves it in memory for `gather`."""
+    scene.require_body(obj)
+    energy = bodies.energy_inputs(obj)
+    if energy is None:
+        return None
+    tools = spacetime_inputs.prepared_tools(obj)
+    if bodies.cached_energy(energy, tools.body) is not None:
+        return None
+    return lambda job: bodies.energy_stage(energy, tools.body, job,
+                                           modal_rs=lambda: tools.modal_rs)
+
+
+def record_energy(obj):
+    """Main thread, after a simulation: note the cubature it used among the object's cache
+    files (so a later Prepare keeps it and a save copies it next to the .blend)."""
+    energy = bodies.energy_inputs(obj)
+    tools = rs_tools.for_object(obj)
+    if energy is not None and tools is not None:
+        parent = bodies.energy_parent(tools.body)
+        bodies.record_energy(obj, parent, energy.key(parent))
+
+
 def potential_for(tools, settings):
-    """The reduced potential of the body's material (cached on the RSTools per model)."""
+    """The reduced potential of the body's material. StVK / Fung: the energy cubature, the
+    body's fourth cache stage (`bodies.energy_stage`), from memory or its cache file, trained
+    here only if nobody did before (the Simulate operator trains it first in its job, see
+    `energy_work`). Linear: the exact quadratic form, kept on the RSTools."""
+    energy = bodies.energy_inputs(settings.id_data)
+    if energy is not None:
+        job = jobs.Job(None)
+        potential = bodies.energy_stage(energy, tools.body, job, modal_rs=lambda: tools.modal_rs)
+        for message in job.warnings:
+            print(f"RS Elastic: {message}")
+        return potential
     cache = tools.__dict__.setdefault("_potentials", {})
-    key = (settings.material_model, settings.fung_stiffening, settings.youngs_modulus,
-           settings.poisson_ratio)
+    key = (settings.youngs_modulus, settings.poisson_ratio)
     if key not in cache:
         mu, lam = fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)
-        material = materials.make_material(settings.material_model, mu, lam,
-                                           fung_stiffening=settings.fung_stiffening)
         volumes = np.abs(fem.tet_volumes(tools.nodes, tools.tets))
-        cache[key], _ = materials.prepare_potential(
-            material, tools.modal_rs, volumes, eigenvalues=tools.body.linear_modes.eigenvalues)
+        cache[key], _ = materials.prepare_potential(materials.Linear(mu, lam), tools.modal_rs,
+                                                    volumes)
     return cache[key]
 
 

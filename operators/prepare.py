@@ -1,4 +1,5 @@
-"""Prepare the active body: tet mesh (if missing), stiffness, mass and linear modes."""
+"""Prepare the active body: tet mesh (if missing), stiffness, mass and linear modes, the reduced
+RS deformer, and the energy cubature of a StVK or Fung material (so its first simulation is fast)."""
 import bpy
 
 from ..bridge import bodies, jobs, preview, tet_overlay
@@ -12,6 +13,7 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
 
     def make_work(self, context):
         inputs = bodies.read_inputs(context.active_object, context.evaluated_depsgraph_get())
+        inputs.energy = bodies.energy_inputs(context.active_object)
         self._inputs = inputs
         return lambda job: bodies.prepare(inputs, job)
 
@@ -21,6 +23,7 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         settings.tets_key, settings.prepared_key, settings.reduced_key = body.keys
         bodies.store_tet_mesh(obj, settings.tets_key, body.tet_body)
         bodies.record_prepared(obj, self._inputs.fingerprint)
+        bodies.record_energy(obj, bodies.energy_parent(body), body.energy_key)
         settings.reduced_basis_count = body.deformer.basis_size
         settings.cubature_count = len(body.deformer.cubature_tets)
         settings.tet_node_count = len(body.tet_body.nodes)
@@ -35,9 +38,11 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         bodies.prune(obj)
         tet_overlay.tag_redraw(context)
         f = body.linear_modes.frequencies_hz
+        energy = "" if body.energy is None else (
+            f"; {self._inputs.energy.label} energy cubature {len(body.energy.tets)} tets")
         self.report({'INFO'}, f"'{obj.name}': {len(f)} modes, {f[0]:.3g} to {f[-1]:.3g} Hz; "
                               f"reduced basis {settings.reduced_basis_count}, cubature "
-                              f"{settings.cubature_count} tets")
+                              f"{settings.cubature_count} tets{energy}")
         return {'FINISHED'}
 
 

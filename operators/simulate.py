@@ -1,8 +1,17 @@
-"""Simulate the active body in RS coordinates and bake the motion into shape keys."""
+"""Simulate the active body in RS coordinates and bake the motion into shape keys.
+
+A StVK or Fung body needs its energy cubature: Prepare makes it, but a material model chosen
+after Prepare (or a new session without the cache in memory) needs it loaded or trained first.
+That runs as a first job on the worker thread (progress, Esc), then the simulation is gathered
+on the main thread and run as a second job, within the same operator.
+"""
 import bpy
 import numpy as np
 
 from ..bridge import bake, jobs, simulation_inputs
+
+ENERGY, SIMULATE = "energy", "simulate"
+MAX_ENERGY_JOBS = 3     # the material may change during a training: retrain, but not forever
 
 
 class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
@@ -12,12 +21,53 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
     bl_label = "Simulate and Bake"
     bl_options = {'REGISTER', 'UNDO'}
 
+    _modal = False
+    _energy_jobs = 0
+
     def make_work(self, context):
-        inputs = simulation_inputs.gather(context.active_object, context.scene)
-        self._inputs = inputs
+        obj = context.active_object
+        work = None
+        if self._energy_jobs < MAX_ENERGY_JOBS:
+            work = simulation_inputs.energy_work(obj)
+        if work is not None:
+            self._phase, self._object_name = ENERGY, obj.name
+            self._energy_jobs += 1
+            return work
+        inputs = simulation_inputs.gather(obj, context.scene)
+        self._phase, self._inputs = SIMULATE, inputs
         return lambda job: simulation_inputs.run(inputs, job)
 
+    def invoke(self, context, event):
+        self._modal = not bpy.app.background
+        return super().invoke(context, event)
+
+    def _then_simulate(self, context):
+        """After the energy job: gather and run the simulation (as the first job ran)."""
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is None or context.view_layer.objects.active != obj:
+            self.report({'ERROR'}, f"'{self._object_name}' is no longer the active object: "
+                                   "its energy cubature is ready, simulate it again")
+            return {'CANCELLED'}
+        simulation_inputs.record_energy(obj)
+        job = self._start(context)
+        if job is None:
+            return {'CANCELLED'}
+        if not self._modal:
+            try:
+                job.run_here()
+            except Exception as exc:
+                return self._fail(exc)
+            return self._finish(context, job)
+        self._job = job
+        job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        return {'RUNNING_MODAL'}     # the modal handler added by invoke carries on
+
     def apply(self, context, poses, job):
+        if self._phase == ENERGY:
+            return self._then_simulate(context)
         inputs = self._inputs
         obj = bpy.data.objects[inputs.object_name]
         for message in inputs.warnings:
@@ -27,6 +77,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
                                    "or a higher frame rate. Nothing was baked")
             return {'CANCELLED'}
         active = bake.write_bake(obj, inputs.frames, poses)
+        simulation_inputs.record_energy(obj)
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")

@@ -5,8 +5,10 @@ import pathlib
 import shutil
 import subprocess
 import sys
+import time
 
 import numpy as np
+import pytest
 import bpy
 
 from blender_helpers import make_bar
@@ -159,3 +161,180 @@ def test_the_overlay_reads_the_pinned_nodes_without_recomputing(ext):
     assert bodies.stats["modes"] == 1
     nodes = bodies.load_tet_body(obj).nodes
     assert np.abs(nodes[pinned, 0]).max() < 0.5        # on the pinned end face, not beyond
+
+
+# --- the energy cubature (StVK / Fung): the fourth stage ---------------------------------------------
+
+SIMULATE_SCRIPT = """
+import json, sys
+sys.path.insert(0, {tools!r})
+import blender_session
+ext = blender_session.start(user_dir={user_dir!r})
+import bpy
+import numpy as np
+bpy.ops.wm.open_mainfile(filepath={blend!r})
+obj = bpy.data.objects["Bar"]
+bpy.context.view_layer.objects.active = obj
+
+def no_training(*args, **kwargs):
+    raise AssertionError("the energy cubature was trained again")
+
+ext.solver.materials.train_energy_cubature = no_training
+result = bpy.ops.rs_elastic.simulate()
+sim = ext.bridge.simulation_inputs
+inputs = sim.gather(obj, bpy.context.scene)
+potential = inputs.simulation.potential
+poses = sim.run(inputs, ext.bridge.jobs.Job(None))
+np.savez({out!r}, tets=potential.tets, weights=potential.weights,
+         strain_modes=potential.strain_modes, poses=poses)
+print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.bodies.stats))))
+"""
+
+
+def energy_files(folder):
+    return sorted(name for name in os.listdir(folder) if ".energy." in name)
+
+
+def simulate_frames(ext, obj):
+    """Simulate frames 1..4 through the operator; the potential it used."""
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    tools = ext.bridge.rs_tools.for_object(obj)
+    return ext.bridge.simulation_inputs.potential_for(tools, obj.rs_elastic)
+
+
+def fresh_poses(ext, obj):
+    """(potential, poses (4, n, 3)) of frames 1..4 gathered and run outside the operator."""
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
+    sim = ext.bridge.simulation_inputs
+    inputs = sim.gather(obj, bpy.context.scene)
+    return inputs.simulation.potential, sim.run(inputs, ext.bridge.jobs.Job(None))
+
+
+def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, tmp_path):
+    obj = make_bar()
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 5
+    obj.rs_elastic.material_model = 'STVK'
+    blend = tmp_path / "stvk.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    stats = ext.bridge.bodies.stats
+    assert stats["energy"] == 1                        # trained by Prepare ...
+    folder = tmp_path / "blendcache_stvk"
+    assert len(energy_files(folder)) == 1
+    trained = simulate_frames(ext, obj)
+    assert stats["energy"] == 1                        # ... so Simulate did not train it
+    potential, poses = fresh_poses(ext, obj)
+    assert potential is trained and len(trained.tets) > 0
+    bpy.ops.wm.save_mainfile()
+
+    out = tmp_path / "child.npz"
+    script = SIMULATE_SCRIPT.format(tools=str(ROOT / "tools"), user_dir=USER_DIR, blend=str(blend),
+                                    out=str(out))
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    line = [l for l in run.stdout.splitlines() if l.startswith("RESULT ")]
+    assert line, run.stdout + run.stderr
+    child = json.loads(line[0][7:])
+    assert child["result"] == ["FINISHED"]
+    assert child["stats"].get("energy", 0) == 0 and child["stats"]["energy_cache_hits"] == 1
+    loaded = np.load(out)
+    for name in ("tets", "weights", "strain_modes"):   # bit for bit what Prepare trained
+        np.testing.assert_array_equal(loaded[name], getattr(trained, name))
+    np.testing.assert_array_equal(loaded["poses"], poses)   # and the same bake, exactly
+
+
+def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_ones(ext):
+    obj = prepare_bar(ext)                             # Linear: no cubature, no file
+    stats, folder = ext.bridge.bodies.stats, ext.bridge.bodies.cache_dirs()[0]
+    simulate_frames(ext, obj)
+    assert stats["energy"] == 0 and energy_files(folder) == []
+    obj.rs_elastic.material_model = 'STVK'              # changed since Prepare: Simulate trains
+    stvk = simulate_frames(ext, obj)
+    assert stats["energy"] == 1 and len(energy_files(folder)) == 1
+    obj.rs_elastic.fung_stiffening = 25.0               # StVK does not read it: reused
+    assert simulate_frames(ext, obj) is stvk and stats["energy"] == 1
+    obj.rs_elastic.material_model = 'FUNG'              # another material: a second file
+    fung = simulate_frames(ext, obj)
+    assert stats["energy"] == 2 and len(energy_files(folder)) == 2
+    assert isinstance(fung.material, ext.solver.materials.Fung)
+    obj.rs_elastic.fung_stiffening = 5.0                # Fung does: a third one
+    simulate_frames(ext, obj)
+    assert stats["energy"] == 3 and len(energy_files(folder)) == 3
+    # A new session: all three are loaded, none trained.
+    ext.bridge.bodies._MEMORY.clear()
+    ext.bridge.rs_tools._TOOLS.clear()
+    for kind, stiffening in (('STVK', 5.0), ('FUNG', 25.0), ('FUNG', 5.0)):
+        obj.rs_elastic.material_model, obj.rs_elastic.fung_stiffening = kind, stiffening
+        simulate_frames(ext, obj)
+    assert stats["energy"] == 3 and stats["energy_cache_hits"] == 3
+    # Preparing the same body again keeps them; a new preparation drops them.
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert stats["energy"] == 3 and len(energy_files(folder)) == 3
+    obj.rs_elastic.youngs_modulus *= 2
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert stats["energy"] == 4 and len(energy_files(folder)) == 1
+
+
+def _garbage(path, arrays):
+    path.write_bytes(b"PK\x03\x04 not really a zip")
+    return " is unreadable ("
+
+
+def _negative_weight(path, arrays):
+    arrays["weights"][0] = -arrays["weights"][0]
+    return " is inconsistent (negative tet index or weight)"
+
+
+def _wrong_shape(path, arrays):
+    arrays["strain_modes"] = arrays["strain_modes"][:, :5]
+    return ": array 'strain_modes' has shape"
+
+
+@pytest.mark.parametrize("damage", [_garbage, _negative_weight, _wrong_shape],
+                         ids=["garbage", "negative_weight", "wrong_shape"])
+def test_a_damaged_energy_file_is_rebuilt_with_one_warning(ext, capfd, damage):
+    obj = make_bar()
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 5
+    obj.rs_elastic.material_model = 'STVK'
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    bodies = ext.bridge.bodies
+    (name,) = energy_files(bodies.cache_dirs()[0])
+    path = pathlib.Path(bodies.cache_dirs()[0]) / name
+    key = json.loads(obj.rs_elastic[bodies.ENERGY_RECORD])["keys"][0]
+    trained = ext.solver.cache.load(str(path), key)
+    _, poses = fresh_poses(ext, obj)
+    arrays = {name: a.copy() for name, a in trained.items()}
+    problem = damage(path, arrays)
+    if problem.startswith(" is inconsistent") or problem.startswith(":"):
+        ext.solver.cache.save(str(path), key, arrays)
+    bodies._MEMORY.clear()
+    capfd.readouterr()
+    rebuilt = simulate_frames(ext, obj)
+    warnings = [line for line in capfd.readouterr().out.splitlines() if line.startswith("Warning: ")]
+    assert len(warnings) == 1 and problem in warnings[0] and str(path) in warnings[0]
+    assert warnings[0].endswith("; rebuilding it")
+    assert bodies.stats["energy"] == 2 and bodies.stats["energy_cache_hits"] == 0
+    for name in ("tets", "weights", "strain_modes"):   # trained again, to the same bits
+        np.testing.assert_array_equal(getattr(rebuilt, name), trained[name])
+        np.testing.assert_array_equal(ext.solver.cache.load(str(path), key)[name], trained[name])
+    np.testing.assert_array_equal(fresh_poses(ext, obj)[1], poses)
+
+
+def test_esc_cancels_the_energy_training_and_writes_nothing(ext):
+    obj = prepare_bar(ext)
+    obj.rs_elastic.material_model = 'FUNG'
+    work = ext.bridge.simulation_inputs.energy_work(obj)
+    assert work is not None
+    job = ext.bridge.jobs.Job(work)
+    job.start()
+    deadline = time.monotonic() + 60
+    while "energy cubature" not in job.message and not job.done and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert job.message.startswith("Fung energy cubature")
+    job.cancel()
+    while not job.done:
+        time.sleep(0.01)
+    assert isinstance(job.error, ext.bridge.jobs.Cancelled)
+    assert energy_files(ext.bridge.bodies.cache_dirs()[0]) == []
+    assert ext.bridge.simulation_inputs.energy_work(obj) is not None     # still to be trained
