@@ -815,6 +815,21 @@ def record_energy(obj, parent, key=""):
         obj.rs_elastic[ENERGY_RECORD] = json.dumps(new)
 
 
+def energy_ready(obj):
+    """Whether Simulate finds the energy cubature of the object's material model without training
+    it (in memory or in a cache file of the preparation it records); None for Linear, which
+    needs none. Safe in draw: it only hashes the key and looks for the file."""
+    energy = energy_inputs(obj)
+    if energy is None:
+        return None
+    parent = _energy_record(obj.rs_elastic)["parent"]
+    if not parent:
+        return False
+    key = energy.key(parent)
+    return key in _MEMORY or any(os.path.exists(cache_file(folder, obj.name, "energy", key))
+                                 for folder in energy.cache_dirs)
+
+
 def persist(obj):
     """Make sure the object's prepared stages are in its primary cache folder (after a file is
     saved under a new name its cache moves next to it)."""

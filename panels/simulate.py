@@ -5,6 +5,7 @@ import bpy
 
 from ..solver.dynamics import damping_ratio
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
+from ..bridge import bodies
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -18,6 +19,8 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "material_model")
         if settings.material_model == 'FUNG':
             layout.prop(settings, "fung_stiffening")
+        if settings.is_prepared and settings.material_model != 'LINEAR':
+            layout.label(text=energy_label(context.active_object))
         layout.prop(settings, "damping_mass")
         layout.prop(settings, "damping_stiffness")
         frequencies = settings.frequencies
@@ -29,6 +32,13 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
         draw_bake_buttons(layout)
+
+
+def energy_label(obj):
+    """Whether the next simulation trains the material's energy cubature (StVK / Fung)."""
+    if bodies.energy_ready(obj):
+        return "Energy cubature: cached with the body"
+    return "Energy cubature: trained when you simulate (Esc cancels)"
 
 
 def damping_label(settings, frequency_hz):

@@ -249,9 +249,13 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     stats, folder = ext.bridge.bodies.stats, ext.bridge.bodies.cache_dirs()[0]
     simulate_frames(ext, obj)
     assert stats["energy"] == 0 and energy_files(folder) == []
+    assert ext.bridge.bodies.energy_ready(obj) is None
     obj.rs_elastic.material_model = 'STVK'              # changed since Prepare: Simulate trains
+    assert ext.bridge.bodies.energy_ready(obj) is False   # what the Simulation panel says
     stvk = simulate_frames(ext, obj)
     assert stats["energy"] == 1 and len(energy_files(folder)) == 1
+    assert ext.bridge.bodies.energy_ready(obj) is True
+    assert ext.panels.simulate.energy_label(obj) == "Energy cubature: cached with the body"
     obj.rs_elastic.fung_stiffening = 25.0               # StVK does not read it: reused
     assert simulate_frames(ext, obj) is stvk and stats["energy"] == 1
     obj.rs_elastic.material_model = 'FUNG'              # another material: a second file
@@ -264,6 +268,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     # A new session: all three are loaded, none trained.
     ext.bridge.bodies._MEMORY.clear()
     ext.bridge.rs_tools._TOOLS.clear()
+    assert ext.bridge.bodies.energy_ready(obj) is True     # from its file
     for kind, stiffening in (('STVK', 5.0), ('FUNG', 25.0), ('FUNG', 5.0)):
         obj.rs_elastic.material_model, obj.rs_elastic.fung_stiffening = kind, stiffening
         simulate_frames(ext, obj)
