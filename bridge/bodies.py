@@ -153,7 +153,8 @@ def prune(obj):
     keep = {cache_file(cache_dirs()[0], obj.name, stage, key)
             for stage, key in _stage_keys(settings) if key}
     folder = cache_dirs()[0]
-    pattern = re.compile(re.escape(_safe_name(obj.name)) + r"\.(tets|modes|reduced|energy)\.[0-9a-f]+\.npz$")
+    pattern = re.compile(re.escape(_safe_name(obj.name))
+                         + r"\.(tets|modes|reduced|energy)\.[0-9a-f]+\.npz$")
     try:
         names = os.listdir(folder)
     except OSError:
@@ -174,12 +175,10 @@ def _stage_keys(settings):
 
 
 def _to_arrays(stage, value):
-    if stage == "tets":
+    if stage in ("tets", "energy"):
         return value.to_arrays()
     if stage == "modes":
         return _modes_to_arrays(value)
-    if stage == "energy":
-        return value.to_arrays()
     return value.save_arrays()
 
 

@@ -216,11 +216,11 @@ def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, 
     obj = make_bar()
     obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 5
     obj.rs_elastic.material_model = 'STVK'
-    blend = tmp_path / "stvk.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     stats = ext.bridge.bodies.stats
     assert stats["energy"] == 1                        # trained by Prepare ...
+    blend = tmp_path / "stvk.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))   # (its file moves next to the .blend)
     folder = tmp_path / "blendcache_stvk"
     assert len(energy_files(folder)) == 1
     trained = simulate_frames(ext, obj)
