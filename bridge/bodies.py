@@ -691,7 +691,8 @@ def energy_parent(body):
     """Digest of what a body's energy cubature is trained on: its tets' and its modes' arrays."""
     tets_digest, modes_digest = body.digests
     if not (tets_digest and modes_digest):
-        tets_digest, modes_digest = digest("tets", body.tet_body), digest("modes", body.linear_modes)
+        tets_digest = digest("tets", body.tet_body)
+        modes_digest = digest("modes", body.linear_modes)
     return cache.content_key("energy parent", tets_digest, modes_digest)
 
 

@@ -1,5 +1,6 @@
 """Prepare the active body: tet mesh (if missing), stiffness, mass and linear modes, the reduced
-RS deformer, and the energy cubature of a StVK or Fung material (so its first simulation is fast)."""
+RS deformer, and the energy cubature of a StVK or Fung material (so its first simulation is
+fast)."""
 import bpy
 
 from ..bridge import bodies, jobs, preview, tet_overlay

@@ -163,7 +163,7 @@ def test_the_overlay_reads_the_pinned_nodes_without_recomputing(ext):
     assert np.abs(nodes[pinned, 0]).max() < 0.5        # on the pinned end face, not beyond
 
 
-# --- the energy cubature (StVK / Fung): the fourth stage ---------------------------------------------
+# --- the energy cubature (StVK / Fung): the fourth stage ------------------------------------------
 
 SIMULATE_SCRIPT = """
 import json, sys
@@ -232,7 +232,8 @@ def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, 
     out = tmp_path / "child.npz"
     script = SIMULATE_SCRIPT.format(tools=str(ROOT / "tools"), user_dir=USER_DIR, blend=str(blend),
                                     out=str(out))
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=300)
     line = [l for l in run.stdout.splitlines() if l.startswith("RESULT ")]
     assert line, run.stdout + run.stderr
     child = json.loads(line[0][7:])
@@ -316,7 +317,8 @@ def test_a_damaged_energy_file_is_rebuilt_with_one_warning(ext, capfd, damage):
     bodies._MEMORY.clear()
     capfd.readouterr()
     rebuilt = simulate_frames(ext, obj)
-    warnings = [line for line in capfd.readouterr().out.splitlines() if line.startswith("Warning: ")]
+    warnings = [line for line in capfd.readouterr().out.splitlines()
+                if line.startswith("Warning: ")]
     assert len(warnings) == 1 and problem in warnings[0] and str(path) in warnings[0]
     assert warnings[0].endswith("; rebuilding it")
     assert bodies.stats["energy"] == 2 and bodies.stats["energy_cache_hits"] == 0
