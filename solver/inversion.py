@@ -91,15 +91,21 @@ def stretch_determinants(strain, order=1):
     in between (no step can tunnel through the barrier).
     """
     strain = np.asarray(strain, dtype=np.float64)
-    S = np.einsum("ek,kij->eij", strain, rs.STRAIN_BASIS) + np.eye(3)         # (E, 3, 3)
-    cof = np.stack([np.cross(S[:, :, 1], S[:, :, 2]), np.cross(S[:, :, 2], S[:, :, 0]),
-                    np.cross(S[:, :, 0], S[:, :, 1])], axis=2)                # columns
-    J = np.einsum("ei,ei->e", S[:, :, 0], cof[:, :, 0])
-    # Sylvester: S is positive definite iff its leading minors S00, cof22 and J are positive.
-    J = np.where((S[:, 0, 0] > 0.0) & (cof[:, 2, 2] > 0.0), J, np.minimum(J, 0.0))
-    grad = cof.reshape(-1, 9) @ _BASIS_COLUMNS if order >= 1 else None
-    hess = (S.reshape(-1, 9) @ _DET_HESSIAN).reshape(-1, 6, 6) if order >= 2 else None
-    return J, grad, hess
+    a, b, c = 1.0 + strain[:, 0], strain[:, 1], strain[:, 2]
+    d, e, f = 1.0 + strain[:, 3], strain[:, 4], 1.0 + strain[:, 5]
+    # Cofactors of S = [[a, b, c], [b, d, e], [c, e, f]] (symmetric).
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    J = a * c00 + b * c01 + c * c02
+    # Sylvester: S is positive definite iff its leading minors a, ad - b^2 and J are positive.
+    J = np.where((a > 0.0) & (a * d - b * b > 0.0), J, np.minimum(J, 0.0))
+    if order < 1:
+        return J, None, None
+    grad = np.stack([c00, 2.0 * c01, 2.0 * c02, a * f - c * c, 2.0 * (b * c - a * e),
+                     a * d - b * b], axis=1)                  # <cof S, B_k>
+    if order < 2:
+        return J, grad, None
+    S9 = np.stack([a, b, c, b, d, e, c, e, f], axis=1)
+    return J, grad, (S9 @ _DET_HESSIAN).reshape(-1, 6, 6)
 
 
 def barrier_function(J, j_hat=J_HAT):
