@@ -720,7 +720,7 @@ class Simulation:
         ratio = dt / self.dt
         if not self.newmark:
             self.coords_prev = self.coords - ratio * (self.coords - self.coords_prev)
-            self.q_prev = self.q - ratio * (self.q - self.q_prev)
+            self.q_prev = self.deformer.q(self.coords_prev)     # on the RS map, as set_state
             self.translation_prev = (self.translation
                                      - ratio * (self.translation - self.translation_prev))
             R = np.asarray(self.rotation, float)

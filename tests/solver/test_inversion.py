@@ -16,6 +16,7 @@ keeps one of those as a control, so the column tests can fail.
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from solver import dynamics, fem, inversion, materials
 from test_dynamics import build_body
@@ -187,15 +188,7 @@ def test_a_rejected_step_is_retaken_as_two_half_steps(column):
     sim = column_simulation(column, potential, substeps=1)
     reference = column_simulation(column, potential, substeps=2)
     taken = record_steps(sim)
-    real_check, failed = sim._inverted_tets, []
-
-    def fail_once():
-        if not failed:
-            failed.append(True)
-            return 1, -1.0, True
-        return real_check()
-
-    sim._inverted_tets = fail_once
+    force_one_retry(sim)
     sim.step()
     reference.step()
     h = 1.0 / FPS
@@ -205,6 +198,49 @@ def test_a_rejected_step_is_retaken_as_two_half_steps(column):
     assert np.allclose(sim._v_s, reference._v_s, atol=1e-9 * np.abs(reference._v_s).max())
     sim.step()
     assert taken[3:] == [h]
+
+
+def force_one_retry(sim):
+    """Make the first check of ``sim`` report one inverted tet; later checks are real."""
+    real_check, failed = sim._inverted_tets, []
+
+    def fail_once():
+        if not failed:
+            failed.append(True)
+            return 1, -1.0, True
+        return real_check()
+
+    sim._inverted_tets = fail_once
+
+
+def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
+    """Implicit Euler keeps velocities as backward differences over one step, so halving the
+    step must rescale them (frame rotation included). A spinning, drifting free body retried
+    in halves matches a run with twice the substeps to round-off, and afterwards its history
+    is back to differences over the nominal dt (twice the half-step turn)."""
+    body = build_body((0.3, 0.1, 0.1), (6, 2, 2), 1e5, 0.3, num_modes=6, pinned=False,
+                      max_size=30, max_tets=40, num_poses=30, num_snapshots=30)
+    sims = [dynamics.Simulation(body["deformer"], body["X"], body["masses"], body["potential"],
+                                1.0 / FPS, gravity=(0.0, 0.0, -9.81), free=True,
+                                integrator="implicit_euler", substeps=n, tets=body["T"])
+            for n in (1, 2)]
+    for sim in sims:
+        sim.set_state(np.zeros(6), 0.5 * np.ones(6), linear_velocity=(1.0, 0.0, 0.0),
+                      angular_velocity=(0.0, 2.0, 3.0))
+    retried, reference = sims
+    force_one_retry(retried)
+    taken = record_steps(retried)
+    retried.step()
+    reference.step()
+    h = 1.0 / FPS
+    assert taken == [h, h / 2, h / 2]
+    assert np.allclose(retried.coords, reference.coords, rtol=1e-9, atol=1e-12)
+    assert np.allclose(retried.rotation, reference.rotation, atol=1e-12)
+    assert np.allclose(retried.translation, reference.translation, atol=1e-12)
+    turn = lambda sim: Rotation.from_matrix(sim.rotation_prev @ sim.rotation.T).as_rotvec()
+    assert np.allclose(turn(retried), 2.0 * turn(reference), atol=1e-12)
+    assert np.allclose(retried.coords - retried.coords_prev,
+                       2.0 * (reference.coords - reference.coords_prev), atol=1e-12)
 
 
 def test_inversion_error_when_even_the_smallest_step_inverts(column):
