@@ -109,7 +109,8 @@ def run(job_inputs, job):
         raise Cancelled() from None
     except dynamics.InversionError as exc:
         raise InputError(f"The simulation of '{job_inputs.object_name}' stopped at frame "
-                         f"{job_inputs.frames[0] + exc.frame}: {exc}. Nothing was baked") from None
+                         f"{job_inputs.frames[0] + exc.frame}: {exc.detail}. Nothing was "
+                         "baked") from None
     if job_inputs.free:   # the floating frame's motion is part of the pose in object space
         poses = trajectory.world_positions(job_inputs.rest, job_inputs.rows)
     else:

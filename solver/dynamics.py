@@ -129,7 +129,8 @@ class InversionError(RuntimeError):
 
     Attributes: time [s] at the start of the failed step; frame, the number of the frame being
     computed counted from the start state (1 = the first step); count of inverted tets and
-    total tets; smallest det F; dt [s] of the last try. The message is one readable line.
+    total tets; smallest det F; dt [s] of the last try; ``detail``, the message without the
+    time and frame (for callers that name the frame their own way). The message is one line.
     """
 
     def __init__(self, time, frame, count, total, smallest, dt):
@@ -140,10 +141,9 @@ class InversionError(RuntimeError):
                     f"{smallest:.3g})")
         else:
             what = "the elastic energy became infinite (a tet's strain collapsed)"
-        super().__init__(
-            f"{what} at t = {time:.4g} s (frame {frame} after the start), even with the time "
-            f"step cut to {dt:.3g} s; make the material stiffer, add substeps or damping, or "
-            f"use fewer modes")
+        self.detail = (f"{what} even with the time step cut to {dt:.3g} s; make the material "
+                       f"stiffer, add substeps or damping, or use fewer modes")
+        super().__init__(f"At t = {time:.4g} s (frame {frame} after the start): {self.detail}")
 
 
 class SimulationCancelled(Exception):

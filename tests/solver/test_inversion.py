@@ -138,9 +138,11 @@ def test_barrier_is_zero_near_rest_and_keeps_the_rest_hessian(column):
 @pytest.mark.parametrize("kind", ["LINEAR", "STVK", "FUNG"])
 def test_the_soft_column_never_inverts(column, kind):
     """Standing column, 4 s at 24 fps with barrier and check: det F > 0 of every tet at every
-    frame; at E = 2e5 the total volume stays within 5 % of rest. (At E = 2e4 the reduced
-    column folds over its base and loses 12-18 % of its volume in the reconstruction without
-    inverting; no volume bound is asserted there.)"""
+    frame; at E = 2e5 the total volume stays within 5 % of rest (measured 0.976 - 1.018).
+    At E = 2e4 the column folds over its base with bending strains of tens of percent; there
+    these Cauchy-strain materials with nu = 0.3 themselves change volume ((1 + e)(1 - nu e)^2
+    is 0.66 at e = -0.5), and the measured total volume spans 0.82 - 1.05 without any tet
+    inverting, so no 5 % bound is asserted there (the barrier only acts below J = 0.8)."""
     sim = column_simulation(column, column_potential(column, kind))
     trajectory = sim.run(int(SECONDS * FPS))
     ratios, volume = volume_ratios(column, trajectory)
