@@ -11,19 +11,23 @@ per tet: cheap enough to evaluate over ALL tets at every Newton iteration. None 
 materials stops J_e from reaching 0: Linear's psi = mu |eps|^2 + lam/2 tr(eps)^2 is finite at
 eps = -I, and StVK on the Cauchy strain even softens in compression (its energy falls again
 past S = I / sqrt(3)); Fung is StVK plus an exponential of StVK, with the same soft branch.
-The issue's pinned column under its own weight therefore inverts under all three.
+So a soft pinned column falling over under its own weight inverts (measured in
+tests/solver/test_inversion.py: all three materials at E = 2e4 Pa, StVK at 2e5 Pa).
 
 Method (choice and why): an IPC-style C2 log barrier (Li et al. 2020, "Incremental Potential
 Contact") on the volume ratio, added to the elastic potential,
 
     V_b(s) = kappa sum_e V_e b(J_e(s)),
-    b(J) = -(J - J_hat)^2 ln(J / J_hat)  for 0 < J < J_hat,   0 for J >= J_hat,   +inf for J <= 0.
+    b(J) = -(J - J_hat)^2 ln(J / J_hat)  for 0 < J < J_hat,   0 for J >= J_hat,   +inf for J <= 0,
 
-- b, b' and b'' all vanish at J_hat, so the barrier is C2 and exactly zero on every tet that is
-  compressed less than J_hat: the rest Hessian (small-strain stiffness, Rayleigh damping,
+and +inf too where S_e is not positive definite (``stretch_determinants``).
+
+- b, b' and b'' all vanish at J_hat, so the barrier is C2 and exactly zero on every tet whose
+  volume ratio is at least J_hat: the rest Hessian (small-strain stiffness, Rayleigh damping,
   automatic substeps) and every simulation that never compresses that far are unchanged.
 - b -> +inf as J -> 0+: the integrator's line search rejects non-finite objectives, so no
-  accepted Newton iterate has an inverted (or flat) RS stretch.
+  accepted Newton iterate has an inverted (or flat) RS stretch, and since the feasible set
+  (positive-definite S_e for all e) is convex in s, no accepted step crosses J = 0 either.
 - Unlike an inversion-safe rewrite of each material (e.g. Stomakhin et al. 2012's extended
   invariants, or Neo-Hookean's -mu ln J), this leaves Linear, StVK and Fung exactly as they
   are wherever they behave and works on the reduced coordinates of all three alike; unlike a
@@ -43,18 +47,21 @@ kappa = K or 10 K with J_hat = 0.5 let the collapse at E = 2e4 Pa drive the RS v
 J ~ 0.01 - 0.1, where the reduced reconstruction x = X + B q(s) (which lags the RS target by up
 to ~0.4 in det F at such compressions) already turns tets inside out; J_hat = 0.8 with
 kappa = 100 K kept RS J >= 0.37 and det F >= 0.17 on all three materials at E = 2e4 and
-2e5 (4 s at 24 fps). A tet compressed to half
-its volume then stores about 100 K * 0.042 = 4 K per unit volume, 34 times the linear
-material's own volumetric energy there: past 20 % compression the body is close to
-incompressible, which is what keeps the reconstruction from inverting.
+2e5 (4 s at 24 fps). A tet compressed to half its volume then stores about
+100 K * 0.042 = 4 K per unit volume, 34 times the linear material's own volumetric energy
+there: past 20 % compression the body is close to incompressible, which is what keeps the
+reconstruction from inverting.
 
 Derivatives in the six strain components e_k (eps = sum_k e_k B_k, ``rs.STRAIN_BASIS``):
 dJ/de_k = <cof S, B_k>, d^2 J/de_k de_l = sum eps_ijk eps_lmn (B_k)_il (B_l)_jm S_kn (linear in
 S, Levi-Civita eps). Per active tet the 6x6 Hessian b'' dJ dJ^T + b' d^2J is projected to
 positive semidefinite (eigenvalues clamped at 0) as in IPC, so Newton's system stays SPD;
 ``project=False`` gives the exact Hessian. At an infeasible s (some J <= 0; only the
-integrator's predictor can be there) the value is +inf and the derivatives continue b
-quadratically from J_FLOOR, so a Newton step from such a guess still points back to J > 0.
+integrator's predictor s_n + dt v_s can be there) the value is +inf and the derivatives
+continue b quadratically from J_FLOOR, so a Newton step from such a guess still points back
+to J > 0. If none of the line search's points is feasible the step ends infeasible, with an
+infinite energy: ``dynamics.Simulation`` given ``tets`` detects that and retakes the step in
+halves (a shorter predictor stays feasible).
 """
 
 import numpy as np
@@ -64,9 +71,6 @@ from . import rs
 J_HAT = 0.8          # volume ratio below which the barrier acts (module docstring)
 BARRIER_SCALE = 100.0   # kappa / K, K the material's small-strain bulk modulus
 J_FLOOR = 1e-3       # relative to J_HAT: derivatives at J <= 0 continue b from J_FLOOR J_HAT
-
-_BASIS_COLUMNS = rs.STRAIN_BASIS.reshape(6, 9).T                        # (9, 6): vec(B_k)
-
 
 def _levi_civita():
     eps = np.zeros((3, 3, 3))
