@@ -703,8 +703,10 @@ class Simulation:
         return int(np.count_nonzero(ratios <= MIN_VOLUME_RATIO)), float(ratios.min()), finite
 
     def _snapshot(self):
-        """The whole integrator state: every attribute, arrays copied. A step only rebinds its
-        state attributes (never writes into them), so this is complete and cheap."""
+        """The whole integrator state: every attribute (a step rebinds its state attributes,
+        so attributes added by other features are covered too), arrays copied so that even an
+        in-place update could not leak into the restored state. Shared objects (deformer,
+        potential) are kept by reference: they hold no step state."""
         return {name: (value.copy() if isinstance(value, np.ndarray) else value)
                 for name, value in self.__dict__.items()}
 
