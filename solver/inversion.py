@@ -38,19 +38,29 @@ and +inf too where S_e is not positive definite (``stretch_determinants``).
 
 Units and constants: b is dimensionless; kappa [Pa] = BARRIER_SCALE * K with K = lam + 2 mu / 3
 the material's small-strain bulk modulus, so kappa V_e b [J] is a volumetric energy that scales
-with the material (psi ~ K/2 (J - 1)^2 near rest) whatever E and nu. J_HAT = 0.8: the barrier
-acts once a tet's RS volume has lost 20 %, beyond the few-percent volume changes of ordinary
-motion (so those results are untouched: exactly zero below that), with room to build its
-resistance before J = 0. BARRIER_SCALE = 100: measured on a pinned 1 x 0.1 x 0.1 m column
-(nu = 0.3, 8 modes; tests/solver/test_inversion.py) falling over under its own weight:
-kappa = K or 10 K with J_hat = 0.5 let the collapse at E = 2e4 Pa drive the RS volume to
-J ~ 0.01 - 0.1, where the reduced reconstruction x = X + B q(s) (which lags the RS target by up
-to ~0.4 in det F at such compressions) already turns tets inside out; J_hat = 0.8 with
-kappa = 100 K kept RS J >= 0.37 and det F >= 0.17 on all three materials at E = 2e4 and
-2e5 (4 s at 24 fps). A tet compressed to half its volume then stores about
-100 K * 0.042 = 4 K per unit volume, 34 times the linear material's own volumetric energy
-there: past 20 % compression the body is close to incompressible, which is what keeps the
-reconstruction from inverting.
+with the material (psi ~ K/2 (J - 1)^2 near rest) whatever E and nu. Measured on a pinned
+1 x 0.1 x 0.1 m column (nu = 0.3, 8 modes, the default reduced model; tests/solver/
+test_inversion.py) falling over under its own weight, 4 s at 24 fps:
+
+- J_HAT = 0.6: the barrier acts once a tet's RS volume has lost 40 %. Ordinary motion, even
+  large, stays above that, and there the barrier is exactly zero, so results are unchanged:
+  a keyed 4 m prop swinging 2.5 m sideways (tests/blender/test_simulate.py) reaches RS J of
+  about 0.63; with J_hat = 0.8 the barrier stiffened that swing enough to fail its test on
+  some tet meshes. Below 0.5 there is too little room left: with J_hat = 0.5 the column's
+  Fung run loses 5.3 % of its volume at E = 2e5, and weaker barriers let it invert (below).
+- BARRIER_SCALE = 100: with J_hat = 0.6, kappa = 100 K kept RS J >= 0.24 and det F of the
+  reconstruction >= 0.15 for all three materials at E = 2e4 and 2e5 Pa (volume within 4.3 %
+  of rest at 2e5); kappa = 10 K (J_hat = 0.5) let the collapse at E = 2e4 drive tets to
+  det F < 0. Near J_hat the barrier starts gently (b ~ (J_hat - J)^3 / J_hat), at J = 0.3 it
+  stores 100 K * 0.062 = 6 K per unit volume, 25 times the linear material's volumetric
+  energy there: deep compression becomes nearly incompressible.
+
+The barrier controls the RS target; the reduced reconstruction x = X + B q(s) only follows it
+approximately. With a coarse reduced model (basis 40, 80 cubature tets) the column still
+inverted in some runs with J_hat = 0.5 - 0.6 and kappa up to 1e4 K (det F down to -0.19), and
+its smallest det F was up to ~0.3 below its smallest RS volume (e.g. 0.07 against 0.34). That
+is what the inversion check of ``dynamics.Simulation`` (``tets``) is for: retry, then a clear
+error.
 
 Derivatives in the six strain components e_k (eps = sum_k e_k B_k, ``rs.STRAIN_BASIS``):
 dJ/de_k = <cof S, B_k>, d^2 J/de_k de_l = sum eps_ijk eps_lmn (B_k)_il (B_l)_jm S_kn (linear in
@@ -68,7 +78,7 @@ import numpy as np
 
 from . import rs
 
-J_HAT = 0.8          # volume ratio below which the barrier acts (module docstring)
+J_HAT = 0.6          # volume ratio below which the barrier acts (module docstring)
 BARRIER_SCALE = 100.0   # kappa / K, K the material's small-strain bulk modulus
 J_FLOOR = 1e-3       # relative to J_HAT: derivatives at J <= 0 continue b from J_FLOOR J_HAT
 
