@@ -3,7 +3,7 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import dynamics, fem, materials
+from ..solver import dynamics, fem, inversion, materials
 from . import bake, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
@@ -116,11 +116,14 @@ def gather(obj, blender_scene):
         rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())
         gravity = rotation.T @ gravity
     masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+    # The volume barrier over all tets keeps the body from inverting; tets let every step check.
+    potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
+                                       np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
     simulation = dynamics.Simulation(
-        tools.deformer, tools.nodes, masses, potential_for(tools, settings), h, gravity=gravity,
+        tools.deformer, tools.nodes, masses, potential, h, gravity=gravity,
         mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
         free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
-        substeps=settings.substeps)
+        substeps=settings.substeps, tets=tools.tets)
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), free, warnings)
 
@@ -137,6 +140,10 @@ def run(job_inputs, job):
                                                should_cancel=job.is_cancelled)
     except dynamics.SimulationCancelled:
         raise Cancelled() from None
+    except dynamics.InversionError as exc:
+        raise InputError(f"The simulation of '{job_inputs.object_name}' stopped at frame "
+                         f"{job_inputs.frames[0] + exc.frame}: {exc.detail}. Nothing was "
+                         "baked") from None
     if job_inputs.free:   # the floating frame's motion is part of the pose in object space
         poses = trajectory.world_positions(job_inputs.rest, job_inputs.rows)
     else:

@@ -116,10 +116,34 @@ import numpy as np
 import scipy.linalg
 from scipy.spatial.transform import Rotation, Slerp
 
-from . import reduced, rs
+from . import inversion, reduced, rs
 
 ARMIJO = 1e-4
 MAX_HALVINGS = 30
+MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
+MIN_VOLUME_RATIO = 1e-3    # det F at or below this counts as inverted (flat or turned inside out)
+
+
+class InversionError(RuntimeError):
+    """Raised by ``Simulation.step`` when a step inverts tets even when cut to its smallest.
+
+    Attributes: time [s] at the start of the failed step; frame, the number of the frame being
+    computed counted from the start state (1 = the first step); count of inverted tets and
+    total tets; smallest det F; dt [s] of the last try; ``detail``, the message without the
+    time and frame (for callers that name the frame their own way). The message is one line.
+    """
+
+    def __init__(self, time, frame, count, total, smallest, dt):
+        self.time, self.frame, self.count, self.total = time, frame, count, total
+        self.smallest, self.dt = smallest, dt
+        if count:
+            what = (f"{count} of {total} tets turned inside out or flat (smallest volume ratio "
+                    f"{smallest:.3g})")
+        else:
+            what = "the elastic energy became infinite (a tet's strain collapsed)"
+        self.detail = (f"{what} even with the time step cut to {dt:.3g} s; make the material "
+                       f"stiffer, add substeps or damping, or use fewer modes")
+        super().__init__(f"At t = {time:.4g} s (frame {frame} after the start): {self.detail}")
 
 
 class SimulationCancelled(Exception):
@@ -404,6 +428,11 @@ class Simulation:
     integrator: "newmark" (default) or "implicit_euler". substeps: internal steps per h (>= 1),
       or 0 for automatic (``automatic_substeps`` of the highest rest frequency); dt = h /
       substeps. ``omega`` (m,) holds the rest frequencies [rad/s], ascending.
+    tets (E, 4): the body's tet mesh (rest_positions are its nodes). Given, every internal step
+      is checked (``step``): det F of all tets of x = X + B q must stay above
+      ``MIN_VOLUME_RATIO`` and the elastic energy finite, else the step is undone and retaken
+      as two half steps (recursively, ``MAX_STEP_SPLITS`` levels); ``InversionError`` if even
+      the smallest inverts. None: no check (the step is taken as it comes).
 
     The body starts at rest in its frame at s = 0 (``set_state`` changes that); a moving frame's
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
@@ -414,7 +443,7 @@ class Simulation:
     def __init__(self, deformer, rest_positions, masses, potential, h, gravity=(0.0, 0.0, 0.0),
                  mass_damping=0.0, stiffness_damping=0.0, free=False, frame_motion=None,
                  start_time=0.0, tolerance=1e-5, max_iterations=20, integrator="newmark",
-                 substeps=1):
+                 substeps=1, tets=None):
         if free and frame_motion is not None:
             raise ValueError("a free body cannot also follow a prescribed frame motion")
         if deformer.basis is None:
@@ -447,6 +476,9 @@ class Simulation:
         self._geometric = (_GeometricStiffness(deformer)
                            if isinstance(deformer, reduced.ReducedRS) else None)
         self.time = float(start_time)
+        self._start_time = self.time
+        self._volumes = (None if tets is None else
+                         inversion.DeformedVolumes(rest_positions, tets, deformer.basis))
         self.set_state(np.zeros(self.num_coords))
 
     # -- precomputation -----------------------------------------------------------------------
@@ -627,12 +659,78 @@ class Simulation:
     # -- one frame ----------------------------------------------------------------------------
 
     def step(self):
-        """Advance one frame h (``substeps`` steps dt); returns the Newton iterations taken."""
+        """Advance one frame h (``substeps`` steps dt); returns the Newton iterations taken.
+
+        With ``tets``, each internal step is checked for inverted tets and a non-finite energy
+        (an RS strain past the volume barrier of ``inversion``, e.g. from a predictor that
+        overshot); a failing step is undone (``_snapshot`` / ``_restore``: state, Newmark
+        rates, frame state, time) and retaken as two steps of half the length, recursively
+        down to dt / 2^MAX_STEP_SPLITS; past that ``InversionError``. Why halving: the
+        predictor s_n + dt v_s and every Newton iterate move less, so the barrier's line search
+        can hold them, and most of the frame keeps its nominal dt.
+        """
         total = 0
-        for _ in range(self.substeps):
-            total += self._newmark_step() if self.newmark else self._euler_step()
+        frame = int(round((self.time - self._start_time) / self.h)) + 1
+        try:
+            for _ in range(self.substeps):
+                total += self._checked_step(self.h / self.substeps, 0, frame)
+        finally:
+            self._set_step(self.h / self.substeps)
         self.iterations = total
         return total
+
+    def _checked_step(self, dt, splits, frame):
+        """One internal step of length dt [s], retaken in halves if it inverts (``step``)."""
+        if self._volumes is None:
+            return self._newmark_step() if self.newmark else self._euler_step()
+        snapshot = self._snapshot()
+        self._set_step(dt)
+        iterations = self._newmark_step() if self.newmark else self._euler_step()
+        count, smallest, finite = self._inverted_tets()
+        if count == 0 and finite:
+            return iterations
+        self._restore(snapshot)
+        if splits >= MAX_STEP_SPLITS:
+            raise InversionError(self.time, frame, count, self._volumes.num_tets, smallest, dt)
+        for _ in range(2):
+            iterations += self._checked_step(0.5 * dt, splits + 1, frame)
+        return iterations
+
+    def _inverted_tets(self):
+        """(count of tets with det F <= MIN_VOLUME_RATIO, smallest det F, energy finite?)."""
+        ratios = self._volumes.ratios(self.q)
+        finite = bool(np.isfinite(self.potential.evaluate(self.coords, 0)[0]))
+        return int(np.count_nonzero(ratios <= MIN_VOLUME_RATIO)), float(ratios.min()), finite
+
+    def _snapshot(self):
+        """The whole integrator state: every attribute (a step rebinds its state attributes,
+        so attributes added by other features are covered too), arrays copied so that even an
+        in-place update could not leak into the restored state. Shared objects (deformer,
+        potential) are kept by reference: they hold no step state."""
+        return {name: (value.copy() if isinstance(value, np.ndarray) else value)
+                for name, value in self.__dict__.items()}
+
+    def _restore(self, snapshot):
+        self.__dict__.update(snapshot)
+
+    def _set_step(self, dt):
+        """Make the internal step dt [s]: the stiffness damping's 1/dt factor, and implicit
+        Euler's history (backward differences over one step) rescaled so that its velocities
+        are kept. Newmark carries velocities and accelerations, which do not depend on dt."""
+        if dt == self.dt:
+            return
+        ratio = dt / self.dt
+        if not self.newmark:
+            self.coords_prev = self.coords - ratio * (self.coords - self.coords_prev)
+            self.q_prev = self.deformer.q(self.coords_prev)     # on the RS map, as set_state
+            self.translation_prev = (self.translation
+                                     - ratio * (self.translation - self.translation_prev))
+            R = np.asarray(self.rotation, float)
+            turn = Rotation.from_matrix(np.asarray(self.rotation_prev, float) @ R.T).as_rotvec()
+            self.rotation_prev = Rotation.from_rotvec(ratio * turn).as_matrix() @ R
+        self.dt = dt
+        scale = (2.0 if self.newmark else 1.0) * self.beta / dt      # as in the constructor
+        self._damping = scale * self.potential.rest_hessian
 
     def _advance(self, s, q, R, c):
         self.coords_prev, self.q_prev = self.coords, self.q

@@ -1,0 +1,302 @@
+"""Keeping reduced RS bodies from inverting: a volume barrier on the RS strain.
+
+In RS coordinates each tet's deformation gradient is F_e = R_e S_e with the stretch
+S_e = I + eps_e, and eps_e(s) = U_e s is *linear* in the modal coordinates s (m,) (U_e (6, m)
+the strain rows of ``rs.linear_rs``). So the volume ratio of the RS target,
+
+    J_e(s) = det(I + eps_e(s)) = det F_e,
+
+is a cubic polynomial in s that costs one (6E, m) product and a closed-form 3x3 determinant
+per tet: cheap enough to evaluate over ALL tets at every Newton iteration. None of the three
+materials stops J_e from reaching 0: Linear's psi = mu |eps|^2 + lam/2 tr(eps)^2 is finite at
+eps = -I, and StVK on the Cauchy strain even softens in compression (its energy falls again
+past S = I / sqrt(3)); Fung is StVK plus an exponential of StVK, with the same soft branch.
+So a soft pinned column falling over under its own weight inverts (measured in
+tests/solver/test_inversion.py: all three materials at E = 2e4 Pa, StVK at 2e5 Pa).
+
+Method (choice and why): an IPC-style C2 log barrier (Li et al. 2020, "Incremental Potential
+Contact") on the volume ratio, added to the elastic potential,
+
+    V_b(s) = kappa sum_e V_e b(J_e(s)),
+    b(J) = -(J - J_hat)^2 ln(J / J_hat)  for 0 < J < J_hat,   0 for J >= J_hat,   +inf for J <= 0,
+
+and +inf too where S_e is not positive definite (``stretch_determinants``).
+
+- b, b' and b'' all vanish at J_hat, so the barrier is C2 and exactly zero on every tet whose
+  volume ratio is at least J_hat: the rest Hessian (small-strain stiffness, Rayleigh damping,
+  automatic substeps) and every simulation that never compresses that far are unchanged.
+- b -> +inf as J -> 0+: the integrator's line search rejects non-finite objectives, so no
+  accepted Newton iterate has an inverted (or flat) RS stretch, and since the feasible set
+  (positive-definite S_e for all e) is convex in s, no accepted step crosses J = 0 either.
+- Unlike an inversion-safe rewrite of each material (e.g. Stomakhin et al. 2012's extended
+  invariants, or Neo-Hookean's -mu ln J), this leaves Linear, StVK and Fung exactly as they
+  are wherever they behave and works on the reduced coordinates of all three alike; unlike a
+  penalty it is a true barrier. It applies to Linear too: the issue's column inverts under
+  Linear as well, because the RS linear material has no volume term that grows at J -> 0.
+- Tets are summed exactly (w_e = 1), not by the energy cubature: a cubature fits the energy
+  of training poses and says nothing about one tet collapsing elsewhere.
+
+Units and constants: b is dimensionless; kappa [Pa] = BARRIER_SCALE * K with K = lam + 2 mu / 3
+the material's small-strain bulk modulus, so kappa V_e b [J] is a volumetric energy that scales
+with the material (psi ~ K/2 (J - 1)^2 near rest) whatever E and nu. Measured on a pinned
+1 x 0.1 x 0.1 m column (nu = 0.3, 8 modes, the default reduced model; tests/solver/
+test_inversion.py) falling over under its own weight, 4 s at 24 fps:
+
+- J_HAT = 0.6: the barrier acts once a tet's RS volume has lost 40 %. Ordinary motion, even
+  large, stays above that, and there the barrier is exactly zero, so results are unchanged:
+  a keyed 4 m prop swinging 2.5 m sideways (tests/blender/test_simulate.py) reaches RS J of
+  about 0.63; with J_hat = 0.8 the barrier stiffened that swing and the test failed on some
+  of its (run-to-run varying) tet meshes; at 0.6 it passed in six runs. Lower is worse: with
+  J_hat = 0.5 the column's Fung run loses 5.3 % of its volume at E = 2e5, and weaker
+  barriers let it invert (below).
+- BARRIER_SCALE = 100: with J_hat = 0.6, kappa = 100 K kept RS J >= 0.24 and det F of the
+  reconstruction >= 0.15 for all three materials at E = 2e4 and 2e5 Pa (volume within 4.3 %
+  of rest at 2e5); kappa = 10 K (J_hat = 0.5) let the collapse at E = 2e4 drive tets to
+  det F < 0. Near J_hat the barrier starts gently (b ~ (J_hat - J)^3 / J_hat), at J = 0.3 it
+  stores 100 K * 0.062 = 6 K per unit volume, 25 times the linear material's volumetric
+  energy there: deep compression becomes nearly incompressible.
+
+The barrier controls the RS target; the reduced reconstruction x = X + B q(s) only follows it
+approximately. With a coarse reduced model (basis 40, 80 cubature tets) the column still
+inverted in some runs with J_hat = 0.5 - 0.6 and kappa up to 1e4 K (det F down to -0.19), and
+its smallest det F was up to ~0.3 below its smallest RS volume (e.g. 0.07 against 0.34). That
+is what the inversion check of ``dynamics.Simulation`` (``tets``) is for: retry, then a clear
+error.
+
+Derivatives in the six strain components e_k (eps = sum_k e_k B_k, ``rs.STRAIN_BASIS``):
+dJ/de_k = <cof S, B_k>, d^2 J/de_k de_l = sum eps_ijk eps_lmn (B_k)_il (B_l)_jm S_kn (linear in
+S, Levi-Civita eps). Per active tet the 6x6 Hessian b'' dJ dJ^T + b' d^2J is projected to
+positive semidefinite (eigenvalues clamped at 0) as in IPC, so Newton's system stays SPD;
+``project=False`` gives the exact Hessian. At an infeasible s (some J <= 0; only the
+integrator's predictor s_n + dt v_s can be there) the value is +inf and the derivatives
+continue b quadratically from J_FLOOR, so a Newton step from such a guess still points back
+to J > 0. If none of the line search's points is feasible the step ends infeasible, with an
+infinite energy: ``dynamics.Simulation`` given ``tets`` detects that and retakes the step in
+halves (a shorter predictor stays feasible).
+"""
+
+import numpy as np
+
+from . import rs
+
+J_HAT = 0.6          # volume ratio below which the barrier acts (module docstring)
+BARRIER_SCALE = 100.0   # kappa / K, K the material's small-strain bulk modulus
+J_FLOOR = 1e-3       # relative to J_HAT: derivatives at J <= 0 continue b from J_FLOOR J_HAT
+
+def _levi_civita():
+    eps = np.zeros((3, 3, 3))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[i, j, k], eps[i, k, j] = 1.0, -1.0
+    return eps
+
+
+# (9, 36): vec(S) -> [d^2 det / de_k de_l]_kl, the Hessian of det is linear in S.
+_DET_HESSIAN = np.einsum("pil,qjm,ijk,lmn->knpq", rs.STRAIN_BASIS, rs.STRAIN_BASIS,
+                         _levi_civita(), _levi_civita()).reshape(9, 36)
+
+
+def stretch_determinants(strain, order=1):
+    """J (E,), dJ/de (E, 6) and d^2J/de^2 (E, 6, 6) of S = I + eps for strains (E, 6).
+
+    Components [xx, xy, xz, yy, yz, zz] as in ``rs``; derivatives None below ``order``.
+    J is replaced by min(J, 0) where S is not positive definite: a symmetric S with J > 0 may
+    still have two negative eigenvalues, a stretch no continuous motion from rest reaches
+    without passing J = 0. So {J > 0} here is the positive-definite cone, which is convex in
+    eps and therefore in s: a line search whose end points are feasible never crosses J = 0
+    in between (no step can tunnel through the barrier).
+    """
+    strain = np.asarray(strain, dtype=np.float64)
+    a, b, c = 1.0 + strain[:, 0], strain[:, 1], strain[:, 2]
+    d, e, f = 1.0 + strain[:, 3], strain[:, 4], 1.0 + strain[:, 5]
+    # Cofactors of S = [[a, b, c], [b, d, e], [c, e, f]] (symmetric).
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    J = a * c00 + b * c01 + c * c02
+    # Sylvester: S is positive definite iff its leading minors a, ad - b^2 and J are positive.
+    J = np.where((a > 0.0) & (a * d - b * b > 0.0), J, np.minimum(J, 0.0))
+    if order < 1:
+        return J, None, None
+    grad = np.stack([c00, 2.0 * c01, 2.0 * c02, a * f - c * c, 2.0 * (b * c - a * e),
+                     a * d - b * b], axis=1)                  # <cof S, B_k>
+    if order < 2:
+        return J, grad, None
+    S9 = np.stack([a, b, c, b, d, e, c, e, f], axis=1)
+    return J, grad, (S9 @ _DET_HESSIAN).reshape(-1, 6, 6)
+
+
+def barrier_function(J, j_hat=J_HAT):
+    """b(J), b'(J), b''(J) (each shaped like J), dimensionless (module docstring).
+
+    Exact for J > 0; for J <= 0, b = +inf while b' and b'' continue b quadratically from
+    J_FLOOR * j_hat (a finite, descending model for a Newton step from an infeasible guess).
+    """
+    J = np.asarray(J, dtype=np.float64)
+    floor = J_FLOOR * j_hat
+    x = np.where(J > 0.0, J, floor)
+    d, log = x - j_hat, np.log(x / j_hat)
+    active = J < j_hat
+    value = np.where(active, -d * d * log, 0.0)
+    first = np.where(active, -2.0 * d * log - d * d / x, 0.0)
+    second = np.where(active, -2.0 * log - 4.0 * d / x + d * d / (x * x), 0.0)
+    infeasible = J <= 0.0
+    first = np.where(infeasible, first + second * (J - floor), first)
+    value = np.where(infeasible, np.inf, value)
+    return value, first, second
+
+
+def bulk_modulus(material):
+    """Small-strain bulk modulus K = lam + 2 mu / 3 [Pa] of a ``materials`` material."""
+    mu, lam = material.small_strain_lame
+    return lam + 2.0 * mu / 3.0
+
+
+class VolumeBarrier:
+    """V_b(s) = kappa sum_e V_e b(det(I + U_e s)) [J] over all tets (module docstring).
+
+    strain_modes U (E, 6, m): strain per unit s of every tet (rows 3:9 of ``rs.linear_rs``);
+    volumes (E,) [m^3]; stiffness kappa [Pa]; j_hat in (0, 1): the volume ratio below which
+    it acts. Build with ``for_material`` to get kappa = BARRIER_SCALE * the material's bulk
+    modulus.
+    """
+
+    def __init__(self, strain_modes, volumes, stiffness, j_hat=J_HAT):
+        if not 0.0 < j_hat < 1.0:
+            raise ValueError(f"j_hat must lie in (0, 1), got {j_hat!r}")
+        if not stiffness > 0.0:
+            raise ValueError(f"barrier stiffness must be positive, got {stiffness!r}")
+        self.strain_modes = np.ascontiguousarray(strain_modes, dtype=np.float64)
+        self.num_coords = self.strain_modes.shape[2]
+        self._flat = self.strain_modes.reshape(-1, self.num_coords)              # (6E, m)
+        self.weights = float(stiffness) * np.abs(np.asarray(volumes, dtype=np.float64))
+        self.stiffness, self.j_hat = float(stiffness), float(j_hat)
+
+    @classmethod
+    def for_material(cls, material, modal_rs, volumes, j_hat=J_HAT):
+        """Barrier of all E tets: modal_rs (E, 9, m) from ``rs.linear_rs``, volumes (E,)."""
+        return cls(np.asarray(modal_rs)[:, 3:, :], volumes,
+                   BARRIER_SCALE * bulk_modulus(material), j_hat)
+
+    def volume_ratios(self, s):
+        """(E,) J_e = det(I + eps_e(s)) of every tet's RS stretch at s (m,)."""
+        strain = (self._flat @ np.asarray(s, dtype=np.float64)).reshape(-1, 6)
+        return stretch_determinants(strain, 0)[0]
+
+    def evaluate(self, s, order=2, project=True):
+        """V_b [J], grad (m,), Hessian (m, m) at s (m,) (None below ``order``).
+
+        Only tets with J_e < j_hat contribute (the rest is exactly zero). project: clamp each
+        active tet's 6x6 Hessian to positive semidefinite (False: the exact Hessian).
+        """
+        m = self.num_coords
+        strain = (self._flat @ np.asarray(s, dtype=np.float64)).reshape(-1, 6)
+        J = stretch_determinants(strain, 0)[0]
+        active = np.flatnonzero(J < self.j_hat)
+        grad = np.zeros(m) if order >= 1 else None
+        hess = np.zeros((m, m)) if order >= 2 else None
+        if len(active) == 0:
+            return 0.0, grad, hess
+        J, dJ, d2J = stretch_determinants(strain[active], order)
+        b, db, d2b = barrier_function(J, self.j_hat)
+        w = self.weights[active]
+        value = float(w @ b)
+        if order < 1:
+            return value, None, None
+        U = self.strain_modes[active]                                          # (A, 6, m)
+        grad = np.einsum("ak,akm->m", (w * db)[:, None] * dJ, U)
+        if order < 2:
+            return value, grad, None
+        H = d2b[:, None, None] * dJ[:, :, None] * dJ[:, None, :] + db[:, None, None] * d2J
+        if project:
+            H = _clamp_psd(H)
+        HU = (w[:, None, None] * H) @ U
+        hess = U.reshape(-1, m).T @ HU.reshape(-1, m)
+        return value, grad, 0.5 * (hess + hess.T)
+
+
+def _clamp_psd(H):
+    """(A, 6, 6) symmetric matrices with negative eigenvalues set to 0."""
+    values, vectors = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
+    return (vectors * np.maximum(values, 0.0)[:, None, :]) @ np.swapaxes(vectors, 1, 2)
+
+
+class BarrierPotential:
+    """A reduced elastic potential plus a ``VolumeBarrier``, with the interface ``dynamics``
+    uses from ``materials.ReducedPotential``: evaluate(s, order), energy / gradient / hessian,
+    rest_hessian, num_coords; other attributes (material, tets, strain_modes, weights, ...)
+    are the wrapped potential's. The barrier vanishes near rest, so ``rest_hessian`` (and with
+    it Rayleigh damping and automatic substeps) is the wrapped potential's; the sum is never
+    quadratic (``is_quadratic`` False)."""
+
+    is_quadratic = False
+
+    def __init__(self, potential, barrier):
+        if barrier.num_coords != potential.num_coords:
+            raise ValueError("the barrier and the potential have different modal coordinates")
+        self.potential, self.barrier = potential, barrier
+        self.num_coords = potential.num_coords
+        self.rest_hessian = potential.rest_hessian
+
+    def __getattr__(self, name):            # only called for attributes not found above
+        if name in ("potential", "barrier"):
+            raise AttributeError(name)
+        return getattr(self.potential, name)
+
+    def evaluate(self, s, order=2):
+        """V + V_b [J], grad (m,), Hessian (m, m) (barrier Hessian PSD-projected)."""
+        energy, grad, hess = self.potential.evaluate(s, order)
+        b_energy, b_grad, b_hess = self.barrier.evaluate(s, order)
+        return (energy + b_energy, None if grad is None else grad + b_grad,
+                None if hess is None else hess + b_hess)
+
+    def energy(self, s):
+        return self.evaluate(s, 0)[0]
+
+    def gradient(self, s):
+        return self.evaluate(s, 1)[1]
+
+    def hessian(self, s):
+        return self.evaluate(s, 2)[2]
+
+
+def with_barrier(potential, modal_rs, volumes, j_hat=J_HAT):
+    """``potential`` (a ``materials.ReducedPotential``) plus the volume barrier of all tets.
+
+    modal_rs (E, 9, m) from ``rs.linear_rs`` and volumes (E,) [m^3] of the full mesh (the
+    potential itself may hold only cubature tets); kappa = BARRIER_SCALE * its bulk modulus.
+    """
+    return BarrierPotential(potential, VolumeBarrier.for_material(potential.material, modal_rs,
+                                                                  volumes, j_hat))
+
+
+class DeformedVolumes:
+    """Volume ratios det F_e of every tet of the full reconstruction x = X + B q.
+
+    rest_positions X (N, 3) [m]; tets (E, 4); basis B (3N, rB) [m per unit q]. det F is
+    invariant under a rigid frame, so body-frame positions suffice. ``ratios(q)`` (E,) costs one
+    (3N, rB) product and E 3x3 determinants, all vectorised.
+    """
+
+    def __init__(self, rest_positions, tets, basis):
+        self.rest = np.asarray(rest_positions, dtype=np.float64)
+        self.tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+        self.basis = np.asarray(basis, dtype=np.float64)
+        if self.basis.shape[0] != self.rest.size or self.tets.max(initial=0) >= len(self.rest):
+            raise ValueError("tets, rest positions and basis do not describe the same mesh")
+        self.rest_determinants = _edge_determinants(self.rest, self.tets)       # (E,) 6 V_e
+        if np.any(self.rest_determinants == 0.0):
+            raise ValueError("the tet mesh has degenerate (zero-volume) tets")
+
+    @property
+    def num_tets(self):
+        return len(self.tets)
+
+    def ratios(self, q):
+        """(E,) det F_e = deformed / rest signed volume at reduced coordinates q (rB,)."""
+        x = self.rest + (self.basis @ np.asarray(q, dtype=np.float64)).reshape(-1, 3)
+        return _edge_determinants(x, self.tets) / self.rest_determinants
+
+
+def _edge_determinants(x, tets):
+    """(E,) det [x_b - x_a, x_c - x_a, x_d - x_a] (6 times the signed volume)."""
+    a = x[tets[:, 0]]
+    e1, e2, e3 = x[tets[:, 1]] - a, x[tets[:, 2]] - a, x[tets[:, 3]] - a
+    return np.einsum("ei,ei->e", e1, np.cross(e2, e3))

@@ -1,0 +1,273 @@
+"""Tests for solver.inversion (the RS volume barrier) and dynamics' inversion check / retry.
+
+Oracles: central finite differences of the barrier's value and gradient; the barrier's exact
+zero (and so the unchanged rest Hessian) below its threshold; det F > 0 of every tet of the
+full reconstruction and the total volume (sum of signed tet volumes) against the rest volume;
+for the retry, a simulation with twice the substeps (the same two half steps, so the same
+state to round-off) and the step lengths actually taken.
+
+The soft column: pinned 1 x 0.1 x 0.1 m bar, 20 x 2 x 2 cells (480 tets), nu = 0.3, 8 modes,
+the default reduced model (basis 80, 84 cubature tets), standing up along +x (gravity -x),
+released at rest: it buckles and falls over. Measured without the barrier (Newmark, automatic
+substeps, no check, 4 s at 24 fps), min det F over all tets and frames: E = 2e5 Pa: Linear
+-0.044, StVK -0.141, Fung 0.322 (but its volume drops to 0.944); E = 2e4 Pa: Linear -4.8e7
+(blown up), StVK -1.59, Fung -1.01. With the barrier and the check: 0.352, 0.398, 0.431 and
+0.147, 0.270, 0.305. ``test_the_soft_column_inverts_without_barrier`` keeps StVK as a
+control, so the column tests can fail.
+"""
+
+import functools
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from solver import dynamics, fem, inversion, materials
+from test_dynamics import build_body
+
+GRAVITY_UP = np.array([-9.81, 0.0, 0.0])      # the column stands along +x on its pinned base
+FPS = 24
+SECONDS = 4.0
+
+
+# Barrier derivatives ---------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def random_barrier():
+    """A barrier on 40 random tets with 5 coordinates, and an s (5,) with several tets in
+    (0, J_hat), found by scaling a fixed direction until the barrier is active but finite."""
+    rng = np.random.default_rng(3)
+    U = rng.normal(size=(40, 6, 5))
+    barrier = inversion.VolumeBarrier(U, rng.uniform(0.5, 1.5, 40), 7.0)
+    direction = rng.normal(size=5)
+    for scale in np.linspace(0.01, 1.0, 200):
+        J = barrier.volume_ratios(scale * direction)
+        if np.count_nonzero(J < barrier.j_hat) >= 4:
+            break
+    s = scale * direction
+    assert J.min() > 0.0 and np.count_nonzero(J < barrier.j_hat) >= 4
+    return barrier, s
+
+
+def test_barrier_gradient_and_hessian_match_central_differences(random_barrier):
+    barrier, s = random_barrier
+    value, grad, hess = barrier.evaluate(s, 2, project=False)
+    assert value > 0.0
+    h = 1e-6
+    unit = np.eye(len(s))
+    fd_grad = np.array([(barrier.evaluate(s + h * e, 0)[0] - barrier.evaluate(s - h * e, 0)[0])
+                        / (2 * h) for e in unit])
+    fd_hess = np.array([(barrier.evaluate(s + h * e, 1)[1] - barrier.evaluate(s - h * e, 1)[1])
+                        / (2 * h) for e in unit])
+    assert np.allclose(fd_grad, grad, rtol=1e-6, atol=1e-8 * np.abs(grad).max())
+    assert np.allclose(fd_hess, hess, rtol=1e-5, atol=1e-7 * np.abs(hess).max())
+
+
+def test_projected_hessian_is_psd_and_exact_where_the_tet_hessians_are(random_barrier):
+    barrier, s = random_barrier
+    projected = barrier.evaluate(s, 2)[2]
+    assert np.linalg.eigvalsh(projected).min() >= -1e-9 * np.abs(projected).max()
+    # On a point where every active tet's 6x6 Hessian is already PSD, projecting changes nothing.
+    J, dJ, d2J = inversion.stretch_determinants(np.zeros((1, 6)) - 0.5 * np.eye(6)[[0]], 2)
+    _, db, d2b = inversion.barrier_function(J, barrier.j_hat)
+    H = d2b[:, None, None] * dJ[:, :, None] * dJ[:, None, :] + db[:, None, None] * d2J
+    assert np.linalg.eigvalsh(H[0]).min() >= 0.0 and J[0] < barrier.j_hat
+    assert np.allclose(inversion._clamp_psd(H), H, atol=1e-12 * np.abs(H).max())
+
+
+def test_barrier_is_infinite_outside_the_positive_definite_stretches():
+    """J <= 0, and J > 0 with two negative eigenvalues (unreachable without passing J = 0),
+    are both infeasible: the value is +inf so a line search rejects them."""
+    strains = np.array([[-1.2, 0, 0, 0, 0, 0],            # S = diag(-0.2, 1, 1): J < 0
+                        [-2.0, 0, 0, -2.0, 0, 0],         # S = diag(-1, -1, 1): J = +1
+                        [-0.5, 0, 0, 0, 0, 0]])           # S = diag(0.5, 1, 1): feasible
+    J = inversion.stretch_determinants(strains, 0)[0]
+    assert J[0] < 0.0 and J[1] <= 0.0 and J[2] == pytest.approx(0.5)
+    values = inversion.barrier_function(J)[0]
+    assert np.isinf(values[:2]).all() and np.isfinite(values[2]) and values[2] > 0.0
+
+
+# The soft column -------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def soft_column(youngs):
+    """The soft column (module docstring) with Young's modulus ``youngs`` [Pa], built once."""
+    body = build_body((1.0, 0.1, 0.1), (20, 2, 2), youngs, 0.3, num_modes=8, max_size=None,
+                      max_tets=150, num_poses=80, num_snapshots=200)
+    body["youngs"] = youngs
+    body["volumes"] = np.abs(fem.tet_volumes(body["X"], body["T"]))
+    return body
+
+
+@pytest.fixture(scope="module", params=[2e5, 2e4], ids=["E2e5", "E2e4"])
+def column(request):
+    return soft_column(request.param)
+
+
+def column_potential(body, kind, barrier=True):
+    material = materials.make_material(kind, body["mu"], body["lam"])
+    potential, _ = materials.prepare_potential(material, body["modal_rs"], body["volumes"],
+                                               eigenvalues=body["modes"].eigenvalues)
+    if barrier:
+        potential = inversion.with_barrier(potential, body["modal_rs"], body["volumes"])
+    return potential
+
+
+def column_simulation(body, potential, check=True, substeps=0):
+    return dynamics.Simulation(body["deformer"], body["X"], body["masses"], potential, 1.0 / FPS,
+                               gravity=GRAVITY_UP, substeps=substeps,
+                               tets=body["T"] if check else None)
+
+
+def volume_ratios(body, trajectory):
+    """(F, E) det F of every tet at every frame of the full reconstruction, and (F,) total
+    volume / rest volume (sums of signed volumes)."""
+    x = trajectory.world_positions(body["X"], body["deformer"].basis)
+    T = body["T"]
+    e = x[:, T[:, 1:]] - x[:, T[:, :1]]                                  # (F, E, 3, 3)
+    deformed = np.linalg.det(e) / 6.0
+    rest = fem.tet_volumes(body["X"], T)
+    return deformed / rest, deformed.sum(axis=1) / rest.sum()
+
+
+def test_barrier_is_zero_near_rest_and_keeps_the_rest_hessian(column):
+    """Small strain (all J >= J_hat): value, gradient and Hessian of the barrier are exactly
+    zero, so the wrapped potential is unchanged there, rest Hessian included."""
+    plain = column_potential(column, "STVK", barrier=False)
+    wrapped = inversion.with_barrier(plain, column["modal_rs"], column["volumes"])
+    assert np.array_equal(wrapped.rest_hessian, plain.rest_hessian)
+    direction = np.random.default_rng(0).normal(size=plain.num_coords)
+    s = direction * 0.05 / np.abs(wrapped.barrier._flat @ direction).max()   # |strain| <= 5 %
+    assert wrapped.barrier.volume_ratios(s).min() >= inversion.J_HAT
+    value, grad, hess = wrapped.barrier.evaluate(s, 2)
+    assert value == 0.0 and not grad.any() and not hess.any()
+    for a, b in zip(wrapped.evaluate(s, 2), plain.evaluate(s, 2)):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("kind", ["LINEAR", "STVK", "FUNG"])
+def test_the_soft_column_never_inverts(column, kind):
+    """Standing column, 4 s at 24 fps with barrier and check: det F > 0 of every tet at every
+    frame; at E = 2e5 the total volume stays within 5 % of rest (measured 0.957 - 1.010).
+    At E = 2e4 the column folds over its base with bending strains of tens of percent; there
+    these Cauchy-strain materials with nu = 0.3 themselves change volume ((1 + e)(1 - nu e)^2
+    is 0.66 at e = -0.5), and the measured total volume spans 0.71 - 1.07 without any tet
+    inverting, so no 5 % bound is asserted there (the barrier only acts below J = 0.6)."""
+    sim = column_simulation(column, column_potential(column, kind))
+    trajectory = sim.run(int(SECONDS * FPS))
+    ratios, volume = volume_ratios(column, trajectory)
+    assert ratios.min() > 0.0, f"min det F {ratios.min():.3f}"
+    if column["youngs"] >= 2e5:
+        assert np.abs(volume - 1.0).max() < 0.05, f"volume range {volume.min()}..{volume.max()}"
+
+
+def test_the_soft_column_inverts_without_barrier(column):
+    """Control: the same column without barrier or check does invert (StVK; see the module
+    docstring for all three)."""
+    sim = column_simulation(column, column_potential(column, "STVK", barrier=False), check=False)
+    seconds = SECONDS if column["youngs"] >= 2e5 else 1.0
+    ratios, _ = volume_ratios(column, sim.run(int(seconds * FPS)))
+    assert ratios.min() < 0.0
+
+
+# Retry and failure ---------------------------------------------------------------------------
+
+def record_steps(sim):
+    """Wrap the internal step so that every dt taken is recorded in a list (returned)."""
+    taken = []
+    inner = sim._newmark_step if sim.newmark else sim._euler_step
+
+    def recorded():
+        taken.append(sim.dt)
+        return inner()
+
+    if sim.newmark:
+        sim._newmark_step = recorded
+    else:
+        sim._euler_step = recorded
+    return taken
+
+
+def test_a_rejected_step_is_retaken_as_two_half_steps():
+    """Force the first check to fail: the frame is then taken as two steps of dt/2 from the
+    restored state, exactly like a simulation with twice the substeps (same state to round-off:
+    the undo restored everything), and the next frame is back to the nominal dt. Both start
+    at rest (a start velocity would make Newmark's start acceleration depend on dt through
+    the finite-difference curvature of ``_body_rates``)."""
+    column = soft_column(2e5)
+    potential = column_potential(column, "LINEAR")
+    sim = column_simulation(column, potential, substeps=1)
+    reference = column_simulation(column, potential, substeps=2)
+    taken = record_steps(sim)
+    force_one_retry(sim)
+    sim.step()
+    reference.step()
+    h = 1.0 / FPS
+    assert taken == [h, h / 2, h / 2] and sim.dt == h and sim.time == pytest.approx(h)
+    scale = np.abs(reference.coords).max()
+    assert np.allclose(sim.coords, reference.coords, atol=1e-10 * scale)
+    assert np.allclose(sim._v_s, reference._v_s, atol=1e-9 * np.abs(reference._v_s).max())
+    sim.step()
+    assert taken[3:] == [h]
+
+
+def force_one_retry(sim):
+    """Make the first check of ``sim`` report one inverted tet; later checks are real."""
+    real_check, failed = sim._inverted_tets, []
+
+    def fail_once():
+        if not failed:
+            failed.append(True)
+            return 1, -1.0, True
+        return real_check()
+
+    sim._inverted_tets = fail_once
+
+
+def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
+    """Implicit Euler keeps velocities as backward differences over one step, so halving the
+    step must rescale them (frame rotation included). A spinning, drifting free body retried
+    in halves matches a run with twice the substeps to round-off, and afterwards its history
+    is back to differences over the nominal dt (twice the half-step turn)."""
+    body = build_body((0.3, 0.1, 0.1), (6, 2, 2), 1e5, 0.3, num_modes=6, pinned=False,
+                      max_size=30, max_tets=40, num_poses=30, num_snapshots=30)
+    sims = [dynamics.Simulation(body["deformer"], body["X"], body["masses"], body["potential"],
+                                1.0 / FPS, gravity=(0.0, 0.0, -9.81), free=True,
+                                integrator="implicit_euler", substeps=n, tets=body["T"])
+            for n in (1, 2)]
+    for sim in sims:
+        sim.set_state(np.zeros(6), 0.5 * np.ones(6), linear_velocity=(1.0, 0.0, 0.0),
+                      angular_velocity=(0.0, 2.0, 3.0))
+    retried, reference = sims
+    force_one_retry(retried)
+    taken = record_steps(retried)
+    retried.step()
+    reference.step()
+    h = 1.0 / FPS
+    assert taken == [h, h / 2, h / 2]
+    assert np.allclose(retried.coords, reference.coords, rtol=1e-9, atol=1e-12)
+    assert np.allclose(retried.rotation, reference.rotation, atol=1e-12)
+    assert np.allclose(retried.translation, reference.translation, atol=1e-12)
+    turn = lambda sim: Rotation.from_matrix(sim.rotation_prev @ sim.rotation.T).as_rotvec()
+    assert np.allclose(turn(retried), 2.0 * turn(reference), atol=1e-12)
+    assert np.allclose(retried.coords - retried.coords_prev,
+                       2.0 * (reference.coords - reference.coords_prev), atol=1e-12)
+
+
+def test_inversion_error_when_even_the_smallest_step_inverts():
+    """No barrier on the E = 2e4 column (it inverts, see the control test): the check halves
+    down to dt / 2^MAX_STEP_SPLITS, then raises one readable InversionError, and the state is
+    the last good one (no inverted tet)."""
+    column = soft_column(2e4)
+    sim = column_simulation(column, column_potential(column, "STVK", barrier=False))
+    taken = record_steps(sim)
+    with pytest.raises(dynamics.InversionError) as caught:
+        sim.run(int(SECONDS * FPS))
+    error = caught.value
+    assert isinstance(error, RuntimeError) and error.count > 0 and error.total == 480
+    assert error.smallest <= dynamics.MIN_VOLUME_RATIO and error.frame >= 1
+    assert min(taken) == pytest.approx(sim.h / sim.substeps / 2 ** dynamics.MAX_STEP_SPLITS)
+    message = str(error)
+    assert "\n" not in message and f"frame {error.frame}" in message and "stiffer" in message
+    ratios = inversion.DeformedVolumes(column["X"], column["T"], column["deformer"].basis)
+    assert ratios.ratios(sim.q).min() > dynamics.MIN_VOLUME_RATIO
