@@ -3,6 +3,7 @@ import math
 
 import bpy
 
+from ..bridge import colliders
 from ..solver.dynamics import damping_ratio
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
@@ -25,10 +26,23 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
             layout.label(text=damping_label(settings, frequencies[0]))
         layout.prop(settings, "integrator")
         layout.prop(settings, "substeps")
+        draw_collisions(layout, context, settings)
         draw_frame_range(layout, settings)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
         draw_bake_buttons(layout)
+
+
+def draw_collisions(layout, context, settings):
+    """The collision settings and the colliders the next simulation will see."""
+    layout.prop(settings, "use_collisions")
+    if not settings.use_collisions:
+        return
+    layout.prop(settings, "collider_collection")
+    layout.prop(settings, "contact_samples")
+    names = [obj.name for obj in colliders.collider_objects(context.active_object, context.scene)]
+    text = f"Colliders: {', '.join(names)}" if names else "No object with a Collision modifier"
+    layout.label(text=text, icon='MOD_PHYSICS')
 
 
 def damping_label(settings, frequency_hz):
