@@ -38,32 +38,40 @@ joules whose gradient is a force) as three terms of ``Contact.evaluate``:
 - Friction (IPC's lagged smoothed Coulomb friction). At ``begin_step`` each sample in the band
   records its normal force lambda_p = -dE/dd, the normal n and a tangent basis T (3, 2) at its
   closest collider point, and that point's displacement dc over the step (the collider's own
-  motion). The step's dissipation potential is mu lambda_p f0(|u|) with the tangential slip
-  u = T^T (x - x_start - dc) and f0 the C1 smoothing of |u| over eps = EPS_V dt,
-  f0(y) = -y^3/(3 eps^2) + y^2/eps + eps/3 for y < eps, y beyond; EPS_V = 1e-3 m/s is the slip
-  speed below which friction acts as a very stiff spring rather than a constant force (static
-  friction). Its gradient is the friction force; its Hessian is PSD as is.
+  motion, ``MeshCollider.displacement``). Friction acts on the sample's end-of-step velocity
+  relative to the collider as the integrator defines it, v = alpha (x - x_start)/dt -
+  (alpha - 1) v_start minus the collider's (alpha = 1 implicit Euler, 2 Newmark's trapezoidal
+  rule), written v = alpha (x - ref) / dt with ref = x_start + dc + (alpha - 1)/alpha (dt v_start
+  - dc). The step's dissipation potential is mu lambda_p f0(|u|), u = T^T (x - ref), f0 the C1
+  smoothing of |u| over eps = EPS_V dt / alpha, f0(y) = -y^3/(3 eps^2) + y^2/eps + eps/3 for
+  y < eps, y beyond; EPS_V = 1e-3 m/s is the slip speed below which friction acts as a stiff
+  spring rather than a constant force (static friction). Its gradient is the friction force
+  mu lambda min(1, ...) against the end slip velocity; its Hessian is PSD as is. Why the end
+  velocity: with Newmark a slip measured over the step (the mean velocity) lets friction that
+  stops a body within one step reverse its velocity (v_end = -v_start), and likewise damping.
 
-- Normal damping (Blender's collision ``damping``). A linear dashpot on the normal velocity of
-  the sample relative to the collider, averaged over the step, (n . (x - x_start - dc)) / dt,
-  as the dissipation potential c / (2 dt) (n . (x - x_start - dc))^2 with n lagged. Mapping:
-  damping = 1 - e, e the coefficient of restitution of a linear spring-dashpot contact,
-  e = exp(-zeta pi / sqrt(1 - zeta^2)), so zeta = -ln e / sqrt(pi^2 + ln^2 e) in [0, 1]
-  (damping 0 -> zeta 0, no loss; damping 1 -> zeta 1, critical, no bounce), and
-  c_p = 2 zeta sqrt(m_p k_p) with the spring k_p the barrier's stiffness at d = dhat / 2
-  and the effective mass m_p = M w_p / W, W the weight of the samples damped this step (the
-  patch that stops the body carries all of its mass). Damped this step are the samples in the
-  band at the start or approaching it fast enough to enter it within the step (an impact can
-  last less than one step). Exact only for a linear spring resolved in time; the barrier is
-  stiffer near the surface, so it is an approximation of the user's restitution.
+- Normal damping (Blender's collision ``damping``). A linear dashpot on the same normal
+  end-of-step relative velocity, dissipation potential alpha c / (2 dt) (n . (x - ref))^2 with n
+  lagged, so its gradient is c (n . v) n. Mapping: damping = 1 - e, e the coefficient of
+  restitution of a linear spring-dashpot contact, e = exp(-zeta pi / sqrt(1 - zeta^2)), so
+  zeta = -ln e / sqrt(pi^2 + ln^2 e) in [0, 1] (damping 0 -> zeta 0, no loss; damping 1 ->
+  zeta 1, critical, no bounce), and c_p = 2 zeta sqrt(m_p k_p) with the spring k_p the
+  barrier's stiffness at d = dhat / 2 and the effective mass m_p = M w_p / W, W the weight of
+  the samples damped this step (the patch that stops the body carries all of its mass). Damped
+  this step are the samples in the band at the start or approaching it fast enough to enter it
+  within the step (an impact can last less than one step). Exact only for a linear spring
+  resolved in time; the barrier is stiffer near the surface and the integrator has its own
+  dissipation, so it approximates the user's restitution.
 
 Distances: libigl's AABB tree (built once per collider placement) gives the closest point;
 the sign is the angle-weighted pseudonormal test (Baerentzen and Aanaes 2005) of the closest
 feature (face, edge, vertex), which is exact for watertight meshes and one-sided for an open
 mesh (a plane): behind it is inside where the point projects onto its faces; nearest to an
 open boundary edge or vertex the distance is positive, so a body can pass around the rim.
-Keyed colliders are placed by transforming their vertices to world space (correct with any
-scale; distances are world metres). The gradient of d is the unit (x - closest) / |x - closest|
+A keyed collider moved by a similarity (rotation, translation, uniform scale, mirror) keeps its
+own-space tree: the points are mapped into its space and the distances scaled back; any other
+placement (non-uniform scale, shear) transforms its vertices to world space and builds a new
+tree (5 ms for 2,000 triangles), so distances are world metres either way. The gradient of d is the unit (x - closest) / |x - closest|
 times the sign.
 
 Units: metres, kilograms, seconds, joules, newtons.
@@ -82,6 +90,8 @@ MIN_THICKNESS = 1e-3
 """[m] Barrier band used for a collider whose thickness is below it (thickness 0 has no band)."""
 DAMPING_SPRING_POINT = 0.5
 """d / dhat at which the barrier's stiffness defines the damping's spring."""
+VELOCITY_FACTOR = {"newmark": 2.0, "implicit_euler": 1.0}
+"""alpha: a scheme's end-of-step velocity is alpha (x - x_n) / dt - (alpha - 1) v_n."""
 _BARY_TOL = 1e-10
 
 
@@ -149,7 +159,9 @@ class _Topology:
 class _Surface:
     """A collider's triangle mesh placed in world space: AABB tree and sign pseudonormals."""
 
-    def __init__(self, vertices, triangles, topology):
+    def __init__(self, vertices, triangles, topology, flip=False):
+        """flip: the vertices were mirrored (negative determinant), so the triangles' winding now
+        points inward and the normals are reversed to keep the inside inside."""
         self.V = np.ascontiguousarray(vertices, dtype=np.float64)
         self.F = triangles
         self.topology = topology
@@ -161,6 +173,8 @@ class _Surface:
         cross = np.cross(b - a, c - a)
         norm = np.linalg.norm(cross, axis=1)
         self.face_normal = cross / np.where(norm > 0, norm, 1.0)[:, None]
+        if flip:
+            self.face_normal = -self.face_normal
         # Angle-weighted vertex and summed edge pseudonormals; only their direction is used.
         corners = np.stack([a, b, c], axis=1)
         u = np.roll(corners, -1, axis=1) - corners
@@ -234,6 +248,26 @@ class _Surface:
         return normal, boundary, count == 0
 
 
+class _Similar:
+    """A collider's own-space surface placed by a similarity x = s R X + T (R orthogonal, possibly
+    a reflection): queries map the points into its own space, so its tree is built only once."""
+
+    def __init__(self, local, linear, translation, scale):
+        self.local = local
+        self.topology = local.topology
+        self.inverse = np.linalg.inv(linear)
+        self.rotation = linear / scale
+        self.linear, self.translation, self.scale = linear, translation, scale
+
+    def box_distance(self, x):
+        return self.scale * self.local.box_distance((x - self.translation) @ self.inverse.T)
+
+    def query(self, x):
+        d, n, closest, face = self.local.query((x - self.translation) @ self.inverse.T)
+        # d_world(x) = s d(L^-1 (x - T)): its gradient s L^-T n = R n.
+        return (self.scale * d, n @ self.rotation.T, closest @ self.linear.T + self.translation, face)
+
+
 class MeshCollider:
     """A Blender collider: a triangle mesh, static or keyed, with contact thickness, friction, damping."""
 
@@ -260,7 +294,8 @@ class MeshCollider:
         self.damping = float(damping)
         self.name = str(name)
         self._topology = _Topology(self.triangles, len(self.vertices))
-        self._placed = {}            # t -> _Surface, the last two placements of a keyed collider
+        self._placed = {}            # t -> placed surface, the last two placements of a keyed collider
+        self._local = None           # the own-space surface, for static and similarity placements
 
     @property
     def is_static(self):
@@ -280,13 +315,32 @@ class MeshCollider:
         return self.vertices @ A[:3, :3].T + A[:3, 3]
 
     def surface(self, t):
-        """The mesh placed at time t (cached: once for a static collider, the last two keyed times)."""
+        """The mesh placed at time t. A static collider's, or a keyed one's moved by a similarity
+        (rotation, translation, uniform scale, mirror) reuses the own-space tree; any other
+        placement (non-uniform scale, shear) builds a tree of the world vertices. The last two
+        placements are cached (a step's start and end)."""
         key = None if self.motion is None else float(t)
         if key not in self._placed:
             if len(self._placed) >= 2:
                 self._placed.pop(next(iter(self._placed)))
-            self._placed[key] = _Surface(self.world_vertices(t), self.triangles, self._topology)
+            self._placed[key] = self._place(t)
         return self._placed[key]
+
+    def _own_space(self):
+        if self._local is None:
+            self._local = _Surface(self.vertices, self.triangles, self._topology)
+        return self._local
+
+    def _place(self, t):
+        if self.motion is None:
+            return self._own_space()
+        A = self.matrix(t)
+        L = A[:3, :3]
+        det = np.linalg.det(L)
+        scale = abs(det) ** (1.0 / 3.0)
+        if scale > 0 and np.allclose(L.T @ L, scale ** 2 * np.eye(3), rtol=0, atol=1e-12 * scale ** 2):
+            return _Similar(self._own_space(), L, A[:3, 3], scale)
+        return _Surface(self.world_vertices(t), self.triangles, self._topology, flip=det < 0)
 
     def signed_distance(self, x, t):
         """Signed distance d (k,) [m] of world points x (k, 3) at time t, its unit gradient n (k, 3),
@@ -359,23 +413,28 @@ def surface_samples(vertices, triangles, count):
 # Contact --------------------------------------------------------------------------------------
 
 class _Lagged:
-    """One collider's lagged terms for one step: samples idx (a,), normals (a, 3), collider
-    displacements dc (a, 3) [m], friction mu lambda (a,) [N] and tangents (a, 3, 2), dashpots c (a,)
-    [N s/m]."""
+    """One collider's lagged terms for one step: samples idx (a,), normals (a, 3), reference
+    positions ref (a, 3) [m] (the end-of-step relative velocity is alpha (x - ref) / dt), friction
+    mu lambda (a,) [N] and tangents (a, 3, 2), dashpots c (a,) [N s/m]."""
 
-    def __init__(self, idx, normal, dc, friction, tangents, dashpot):
-        self.idx, self.normal, self.dc = idx, normal, dc
+    def __init__(self, idx, normal, ref, friction, tangents, dashpot):
+        self.idx, self.normal, self.ref = idx, normal, ref
         self.friction, self.tangents, self.dashpot = friction, tangents, dashpot
 
 
 class Contact:
     """Barrier, lagged friction and normal damping of one body's surface samples against colliders."""
 
-    def __init__(self, colliders, points, rows, weights, masses):
+    def __init__(self, colliders, points, rows, weights, masses, integrator="newmark"):
         """colliders: list of MeshCollider. points (k, 3) [m]: rest positions of the samples in the body's
         rest space; rows (3k, rB): their displacement rows (sample displacement = (rows @ q).reshape(k, 3));
         weights (k,) [m^2]; masses (k,) [kg]: each sample's share of the body's mass.
+        integrator: the dynamics' scheme, "newmark" (end velocity 2 (x - x_n) / dt - v_n) or
+        "implicit_euler" ((x - x_n) / dt); friction and damping act on that end-of-step velocity.
         Attributes used by dynamics: .points, .rows, .num_samples."""
+        if integrator not in VELOCITY_FACTOR:
+            raise ValueError(f"unknown integrator {integrator!r}; expected one of {sorted(VELOCITY_FACTOR)}")
+        self.alpha = VELOCITY_FACTOR[integrator]
         self.colliders = list(colliders)
         self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.rows = rows
@@ -391,7 +450,6 @@ class Contact:
         self._coef = [k * self.weights * c.dhat for k, c in zip(self.kappa, self.colliders)]
         self._t_end = 0.0
         self._dt = None
-        self._x_start = None
         self._lagged = []
 
     # Queries ----------------------------------------------------------------------------------
@@ -431,7 +489,6 @@ class Contact:
         v0 = np.asarray(v_start, dtype=np.float64).reshape(-1, 3)
         self._dt = float(dt)
         self._t_end = float(t_start) + self._dt
-        self._x_start = x0.copy()
         found = []
         for c, coef in zip(self.colliders, self._coef):
             surf = c.surface(t_start)
@@ -464,7 +521,9 @@ class Contact:
             zeta = restitution_damping_ratio(c.damping)
             m_eff = self.total_mass * self.weights[idx] / max(damped_weight, 1e-300)
             dashpot = np.where(damped[idx], 2.0 * zeta * np.sqrt(m_eff * spring), 0.0)
-            self._lagged.append(_Lagged(idx, n[idx], dc[idx], c.friction * lam,
+            # End velocity relative to the collider: alpha (x - ref) / dt with this reference.
+            ref = x0[idx] + dc[idx] + (self.alpha - 1.0) / self.alpha * (v0[idx] * dt - dc[idx])
+            self._lagged.append(_Lagged(idx, n[idx], ref, c.friction * lam,
                                         _tangent_basis(n[idx]) if len(idx) else np.zeros((0, 3, 2)),
                                         dashpot))
 
@@ -523,20 +582,21 @@ class Contact:
         if len(lag.idx) == 0:
             return 0.0
         dt = self._dt
-        rel = x[lag.idx] - self._x_start[lag.idx] - lag.dc           # (a, 3) relative displacement
+        alpha = self.alpha
+        rel = x[lag.idx] - lag.ref         # (a, 3) = dt / alpha * the end relative velocity
         value = 0.0
-        # Friction: mu lambda f0(|u|), u = T^T rel.
+        # Friction: mu lambda f0(|u|), u = T^T rel, smoothed below the slip speed EPS_V.
         u = np.einsum("aji,aj->ai", lag.tangents, rel)
         y = np.linalg.norm(u, axis=1)
-        f0, g, dg = _f0_terms(y, EPS_V * dt)
+        f0, g, dg = _f0_terms(y, EPS_V * dt / alpha)
         value += float(np.dot(lag.friction, f0))
-        # Damping: c / (2 dt) (n . rel)^2.
+        # Damping: alpha c / (2 dt) (n . rel)^2, whose gradient is c times the normal end velocity.
         a = np.einsum("aj,aj->a", lag.normal, rel)
-        value += float(np.dot(lag.dashpot, a * a)) / (2.0 * dt)
+        value += alpha * float(np.dot(lag.dashpot, a * a)) / (2.0 * dt)
         if order >= 1:
             gu = (lag.friction * g)[:, None] * u                              # (a, 2)
             grad[lag.idx] += np.einsum("aij,aj->ai", lag.tangents, gu)
-            grad[lag.idx] += (lag.dashpot * a / dt)[:, None] * lag.normal
+            grad[lag.idx] += (alpha * lag.dashpot * a / dt)[:, None] * lag.normal
         if order >= 2:
             # d(g u)/du = g I + g'(y) y uu^T/|u|^2: PSD for IPC's f0 (eigenvalues g and f1'(y) >= 0).
             unit = u / np.maximum(y, 1e-300)[:, None]
@@ -544,6 +604,6 @@ class Contact:
                 "ai,aj->aij", unit, unit)
             Hu *= lag.friction[:, None, None]
             hess[lag.idx] += np.einsum("aik,akl,ajl->aij", lag.tangents, Hu, lag.tangents)
-            hess[lag.idx] += (lag.dashpot / dt)[:, None, None] * np.einsum(
+            hess[lag.idx] += (alpha * lag.dashpot / dt)[:, None, None] * np.einsum(
                 "ai,aj->aij", lag.normal, lag.normal)
         return value

@@ -86,13 +86,13 @@ def box_sdf(p, half):
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
 
-def make_contact(collider, x, masses=None, weights=None):
-    """A Contact of samples at x (k, 3) (rest = x, identity rows) with unit weights and masses."""
+def make_contact(collider, x, masses=None, weights=None, integrator="newmark"):
+    """A Contact of samples at x (k, 3) (rest = x, identity rows), masses 0.5 kg, weights 0.01 m^2."""
     k = len(x)
     masses = np.full(k, 0.5) if masses is None else masses
     weights = np.full(k, 0.01) if weights is None else weights
     colliders = collider if isinstance(collider, list) else [collider]
-    return contact.Contact(colliders, x, np.eye(3 * k), weights, masses)
+    return contact.Contact(colliders, x, np.eye(3 * k), weights, masses, integrator=integrator)
 
 
 def fd_gradient(contact_, x, h=1e-7):
@@ -171,28 +171,38 @@ def test_box_distance_is_exact_everywhere_including_edges_and_corners():
     np.testing.assert_allclose(n[smooth], fd[smooth], atol=1e-5)
 
 
-def keyed_box_motion(t):
-    """Object-to-world matrix of a keyed box: non-uniform scale, rotation and translation in t."""
-    A = np.eye(4)
-    R = Rotation.from_rotvec(np.array([0.3, -0.5, 0.8]) * (0.2 + t)).as_matrix()
-    A[:3, :3] = R @ np.diag([1.0, 2.0, 0.5])
-    A[:3, 3] = [0.1, -0.2 + t, 0.3 * t]
-    return A
+def keyed_motion(scale):
+    """Object-to-world matrices of a keyed collider: scale (3,), rotation and translation in t."""
+    def motion(t):
+        A = np.eye(4)
+        R = Rotation.from_rotvec(np.array([0.3, -0.5, 0.8]) * (0.2 + t)).as_matrix()
+        A[:3, :3] = R @ np.diag(scale)
+        A[:3, 3] = [0.1, -0.2 + t, 0.3 * t]
+        return A
+    return motion
 
 
-def test_keyed_scaled_rotated_box_distance_is_in_world_metres_at_two_times():
+keyed_box_motion = keyed_motion([1.0, 2.0, 0.5])
+
+
+@pytest.mark.parametrize("scale", [[1.0, 2.0, 0.5], [1.5, 1.5, 1.5], [-1.5, 1.5, 1.5], [-1.0, 2.0, 0.5]],
+                         ids=["non-uniform", "uniform", "mirrored", "mirrored non-uniform"])
+def test_keyed_scaled_rotated_box_distance_is_in_world_metres_at_two_times(scale):
     half = np.array([0.4, 0.25, 0.6])
     V, F = box_surface(half, cells=1)
-    box = contact.MeshCollider(V, F, motion=keyed_box_motion, name="keyed box")
+    motion = keyed_motion(scale)
+    box = contact.MeshCollider(V, F, motion=motion, name="keyed box")
     rng = np.random.default_rng(1)
+    world_half = half * np.abs(scale)
     for t in (0.0, 0.75):
-        A = keyed_box_motion(t)
-        R = A[:3, :3] @ np.diag([1.0, 0.5, 2.0])
-        world_half = half * [1.0, 2.0, 0.5]
+        A = motion(t)
+        R = A[:3, :3] @ np.diag(1.0 / np.abs(scale))          # rotation (times a mirror)
         local = rng.uniform(-2.0, 2.0, size=(300, 3)) * world_half
         x = local @ R.T + A[:3, 3]
-        d, _, _ = box.signed_distance(x, t)
+        d, n, closest = box.signed_distance(x, t)
         np.testing.assert_allclose(d, box_sdf(local, world_half), atol=1e-12)
+        np.testing.assert_allclose(np.abs(d), np.linalg.norm(x - closest, axis=1), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
         np.testing.assert_allclose(box.world_vertices(t), V @ A[:3, :3].T + A[:3, 3], atol=1e-15)
 
 
@@ -319,15 +329,16 @@ def moving_plane(t):
     return A
 
 
+@pytest.mark.parametrize("integrator", ["newmark", "implicit_euler"])
 @pytest.mark.parametrize("friction, damping", [(0.6, 0.0), (0.0, 0.8), (0.4, 0.5)])
-def test_friction_and_damping_gradient_and_hessian_match_finite_differences(friction, damping):
+def test_friction_and_damping_gradient_and_hessian_match_finite_differences(friction, damping, integrator):
     V, F = plane_mesh(3.0)
     ground = contact.MeshCollider(V, F, motion=moving_plane, thickness=0.02, friction=friction,
                                   damping=damping, name="ground")
     x0 = np.array([[0.0, 0.0, 0.012], [0.5, -0.2, 0.016], [-0.3, 0.4, 0.008], [0.2, 0.2, 0.5]])
     v0 = np.array([[0.3, 0.0, -0.2], [0.0, 0.0, 0.0], [-0.1, 0.2, -1.0], [0.0, 0.0, -0.5]])
     dt = 0.01
-    c = make_contact(ground, x0)
+    c = make_contact(ground, x0, integrator=integrator)
     c.begin_step(0.2, dt, x0, v0)
     # End positions: slipping fast (beyond eps_v dt), slowly (inside it), and not in contact.
     x = x0 + np.array([[0.004, 0.0005, 0.001], [0.004 + 1e-6, -0.001 + 2e-6, 0.0001], [-0.001, 0.002, 0.0015],
@@ -361,6 +372,29 @@ def test_friction_opposes_slip_relative_to_the_moving_collider_with_coulomb_magn
     direction = np.array([0.4, -0.1]) / np.linalg.norm([0.4, -0.1])
     np.testing.assert_allclose(friction_force[:2], mu * normal_force * direction, rtol=1e-9)
     assert abs(friction_force[2]) < 1e-9 * normal_force
+
+
+@pytest.mark.parametrize("integrator, alpha", [("newmark", 2.0), ("implicit_euler", 1.0)])
+def test_friction_and_damping_act_on_the_schemes_end_velocity_relative_to_the_collider(integrator, alpha):
+    """Newmark's end velocity is 2 (x - x0)/dt - v0, implicit Euler's (x - x0)/dt (dynamics.py):
+    where it equals the collider's velocity, friction and damping vanish; otherwise the force
+    opposes the relative end velocity."""
+    V, F = plane_mesh(3.0)
+    ground = contact.MeshCollider(V, F, motion=moving_plane, thickness=0.02, friction=0.5, damping=0.7)
+    x0 = np.array([[0.0, 0.0, 0.01], [0.3, -0.2, 0.015]])
+    v0 = np.array([[1.0, 0.5, -0.3], [-0.2, 0.1, -0.5]])
+    dt, t0 = 0.01, 0.1
+    c = make_contact(ground, x0, integrator=integrator)
+    c.begin_step(t0, dt, x0, v0)
+    v_collider = ground.velocity(x0 * [1, 1, 0], t0, dt)            # a translation: same everywhere
+    end = lambda v_end: x0 + dt / alpha * (v_end + (alpha - 1.0) * v0)
+    dissipative = lambda x: c.evaluate(x)[1] + c.forces(x)           # friction + damping gradient
+    np.testing.assert_allclose(dissipative(end(v_collider)), 0.0, atol=1e-9)
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        v_rel = rng.normal(size=(2, 3)) * 0.3
+        force = -dissipative(end(v_collider + v_rel))
+        assert np.all(np.einsum("kj,kj->k", force, v_rel) < 0)
 
 
 def test_damping_ratio_gives_the_users_restitution_for_a_linear_spring_dashpot():
