@@ -74,6 +74,13 @@ placement (non-uniform scale, shear) transforms its vertices to world space and 
 tree (5 ms for 2,000 triangles), so distances are world metres either way. The gradient of d is the unit (x - closest) / |x - closest|
 times the sign.
 
+Beyond the agreed interface (optional, backward compatible): ``Contact(..., integrator=)``
+("newmark" by default, as ``dynamics``) selects the end-of-step velocity friction and damping
+act on, and ``Contact.max_step`` bounds a line-search step so no sample tunnels through a
+thin collider. Cost (2 cores, shared): ``evaluate`` on 300 samples against a 1,984-triangle
+sphere, all samples inside its bounding box, 0.5 ms; ``begin_step`` 0.6 ms (static or
+similarity-keyed), 7 ms for a non-uniformly scaled keyed collider (a new tree each step).
+
 Units: metres, kilograms, seconds, joules, newtons.
 """
 
@@ -319,7 +326,9 @@ class MeshCollider:
         (rotation, translation, uniform scale, mirror) reuses the own-space tree; any other
         placement (non-uniform scale, shear) builds a tree of the world vertices. The last two
         placements are cached (a step's start and end)."""
-        key = None if self.motion is None else float(t)
+        # Rounded so that a step's end time and the next step's start time, summed differently
+        # by the caller, share one placement.
+        key = None if self.motion is None else round(float(t), 9)
         if key not in self._placed:
             if len(self._placed) >= 2:
                 self._placed.pop(next(iter(self._placed)))
@@ -544,6 +553,29 @@ class Contact:
             for lag in self._lagged:
                 value += self._dissipation(lag, x, grad, hess, order)
         return value, grad, hess
+
+    def max_step(self, x, dx, margin=0.1):
+        """Optional line-search bound (not part of the agreed interface): the largest fraction
+        t in [0, 1] (a float) such that no sample moves by more than (1 - margin) times its
+        current distance to the nearest collider along x + t dx (x, dx (k, 3) [m], world, at the
+        step's end time). The distance is 1-Lipschitz, so the whole segment stays outside every
+        collider: no sample can tunnel through a thin collider in one trial (a conservative
+        stand-in for continuous collision detection). Samples farther than their move are not
+        limited. x must be outside all colliders."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        move = np.linalg.norm(np.asarray(dx, dtype=np.float64).reshape(-1, 3), axis=1)
+        nearest = np.full(len(x), np.inf)
+        for c in self.colliders:
+            surface = c.surface(self._t_end)
+            near = np.arange(len(x)) if surface.topology.is_open else np.flatnonzero(
+                surface.box_distance(x) < move)
+            if len(near):
+                d, _, _, _ = surface.query(x[near])
+                nearest[near] = np.minimum(nearest[near], d)
+        limited = move > (1.0 - margin) * nearest
+        if not limited.any():
+            return 1.0
+        return float(np.clip(np.min((1.0 - margin) * nearest[limited] / move[limited]), 0.0, 1.0))
 
     def forces(self, x):
         """(k, 3) [N] contact force on each sample at positions x (for reports/tests): -grad of the barrier.

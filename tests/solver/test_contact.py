@@ -397,6 +397,23 @@ def test_friction_and_damping_act_on_the_schemes_end_velocity_relative_to_the_co
         assert np.all(np.einsum("kj,kj->k", force, v_rel) < 0)
 
 
+def test_max_step_keeps_the_whole_segment_outside_a_thin_collider():
+    half = np.array([1.0, 1.0, 0.005])                       # a 1 cm board
+    V, F = box_surface(half, cells=2)
+    board = contact.MeshCollider(V, F, thickness=0.02, name="board")
+    x = np.array([[0.1, 0.2, 0.03], [0.5, -0.5, 0.3], [3.0, 0.0, 0.0]])
+    dx = np.array([[0.02, 0.0, -0.1], [0.0, 0.0, -0.1], [0.0, 0.0, -5.0]])
+    c = make_contact(board, x)
+    assert c.evaluate(x + dx)[0] < np.inf                     # the full step tunnels through
+    t = c.max_step(x, dx)
+    assert 0.0 < t < 1.0
+    path = np.linspace(0.0, t, 201)
+    d = np.stack([board.signed_distance(x + s * dx, 0.0)[0] for s in path])
+    assert np.all(d > 0.0)
+    np.testing.assert_allclose(t, 0.9 * (0.03 - 0.005) / np.linalg.norm(dx[0]), rtol=1e-12)
+    assert c.max_step(x, 0.01 * dx) == 1.0
+
+
 def test_damping_ratio_gives_the_users_restitution_for_a_linear_spring_dashpot():
     m, k = 0.3, 1.0e4
     for damping in (0.0, 0.25, 0.6, 0.9):
