@@ -448,6 +448,79 @@ def test_check_start_names_the_collider():
         c.check_start(x - [0, 0, 0.6], 0.0)
 
 
+# Small rigid-translation simulations (the dynamics' step objective on 3 unknowns) -------------
+
+def simulate_translation(contact_, X, c0, v0, mass, dt, steps, scheme, gravity=(0.0, 0.0, -9.81)):
+    """A rigid body translating by c (3,), samples at X + c, stepped by the dynamics' objective
+    (dynamics.py): Newmark  2/dt^2 M |c - c_hat|^2, c_hat = c + dt v + dt^2/4 (a + g), or
+    implicit Euler 1/(2 dt^2) M |c - c_hat|^2, c_hat = c + dt v + dt^2 g, plus the contact
+    energy, by Newton with a backtracking Armijo line search (bounded by max_step). Returns
+    (steps+1, 3) c and v. Static colliders."""
+    g = np.asarray(gravity, dtype=float)
+    c, v = np.array(c0, dtype=float), np.array(v0, dtype=float)
+    a = g + contact_.forces(X + c).sum(axis=0) / mass          # consistent start acceleration
+    W = mass * (2.0 if scheme == "newmark" else 0.5) / dt ** 2
+    cs, vs = [c.copy()], [v.copy()]
+    for n in range(steps):
+        contact_.begin_step(n * dt, dt, X + c, np.tile(v, (len(X), 1)))
+        c_hat = c + dt * v + (dt * dt / 4 * (a + g) if scheme == "newmark" else dt * dt * g)
+        objective = lambda y: W * np.sum((y - c_hat) ** 2) + contact_.evaluate(X + y, 0)[0]
+        y = c.copy()
+        for _ in range(50):
+            _, grad, hess = contact_.evaluate(X + y)
+            G = 2 * W * (y - c_hat) + grad.sum(axis=0)
+            step = -np.linalg.solve(2 * W * np.eye(3) + hess.sum(axis=0), G)
+            t = contact_.max_step(X + y, np.tile(step, (len(X), 1)))
+            f0 = objective(y)
+            while objective(y + t * step) > f0 + 1e-4 * t * (G @ step) and t > 1e-12:
+                t *= 0.5
+            y = y + t * step
+            if np.linalg.norm(t * step) < 1e-12:
+                break
+        if scheme == "newmark":
+            a = 4 / dt ** 2 * (y - c - dt * v) - a
+            v = 2 / dt * (y - c) - v
+        else:
+            v = (y - c) / dt
+        c = y
+        cs.append(c.copy())
+        vs.append(v.copy())
+    return np.array(cs), np.array(vs)
+
+
+def four_point_block(scheme, friction, damping, mass=2.0):
+    V, F = plane_mesh(5.0)
+    ground = contact.MeshCollider(V, F, thickness=0.02, friction=friction, damping=damping, name="ground")
+    X = np.array([[x, y, 0.0] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+    c = contact.Contact([ground], X, None, np.full(4, 0.01), np.full(4, mass / 4), integrator=scheme)
+    rest = brentq(lambda z: c.forces(X + [0, 0, z])[:, 2].sum() - mass * 9.81, 1e-9, 0.02 - 1e-12)
+    return c, X, rest
+
+
+@pytest.mark.parametrize("scheme", ["newmark", "implicit_euler"])
+def test_a_block_sliding_on_the_ground_stops_after_the_coulomb_distance(scheme):
+    """Oracle: a block sliding at v with friction mu decelerates at mu g and stops after
+    v^2 / (2 mu g), in v / (mu g) seconds; it keeps its rest height meanwhile."""
+    mu, v, dt, mass = 0.5, 2.0, 1 / 240, 2.0
+    c, X, rest = four_point_block(scheme, mu, 0.5, mass)
+    cs, vs = simulate_translation(c, X, [0, 0, rest], [v, 0, 0], mass, dt, 130, scheme)
+    np.testing.assert_allclose(cs[-1, 0], v ** 2 / (2 * mu * 9.81), rtol=0.02)
+    np.testing.assert_allclose(np.argmax(np.abs(vs[:, 0]) < 1e-3) * dt, v / (mu * 9.81), atol=2 * dt)
+    assert np.all(np.abs(vs[-10:, 0]) < 1e-4)
+    np.testing.assert_allclose(cs[:, 2], rest, atol=1e-4 * 0.02)
+
+
+@pytest.mark.parametrize("scheme", ["newmark", "implicit_euler"])
+def test_a_dropped_block_comes_to_rest_at_the_static_equilibrium_inside_the_band(scheme):
+    dt, mass = 1 / 240, 2.0
+    c, X, rest = four_point_block(scheme, 0.5, 1.0, mass)
+    assert 0.0 < rest < 0.02
+    cs, vs = simulate_translation(c, X, [0, 0, 0.3], [0, 0, 0], mass, dt, 240, scheme)
+    assert np.all(cs[:, 2] > 0.0)
+    np.testing.assert_allclose(cs[-1, 2], rest, atol=1e-6)
+    np.testing.assert_allclose(vs[-1], 0.0, atol=1e-4)
+
+
 # Stiffness ------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("share", [1.0, 6.0, 100.0])
