@@ -271,8 +271,11 @@ class _Similar:
 
     def query(self, x):
         d, n, closest, face = self.local.query((x - self.translation) @ self.inverse.T)
-        # d_world(x) = s d(L^-1 (x - T)): its gradient s L^-T n = R n.
-        return (self.scale * d, n @ self.rotation.T, closest @ self.linear.T + self.translation, face)
+        # d_world(x) = s d(L^-1 (x - T)): its gradient s L^-T n = R n (renormalised for a
+        # float32 R).
+        n = n @ self.rotation.T
+        n /= np.linalg.norm(n, axis=1)[:, None]
+        return self.scale * d, n, closest @ self.linear.T + self.translation, face
 
 
 class MeshCollider:
@@ -347,7 +350,9 @@ class MeshCollider:
         L = A[:3, :3]
         det = np.linalg.det(L)
         scale = abs(det) ** (1.0 / 3.0)
-        if scale > 0 and np.allclose(L.T @ L, scale ** 2 * np.eye(3), rtol=0, atol=1e-12 * scale ** 2):
+        # Blender's matrices are float32: a similarity up to 1e-6 is taken as one (the distance
+        # error is then ~1e-6 of the collider's size).
+        if scale > 0 and np.allclose(L.T @ L, scale ** 2 * np.eye(3), rtol=0, atol=1e-6 * scale ** 2):
             return _Similar(self._own_space(), L, A[:3, 3], scale)
         return _Surface(self.world_vertices(t), self.triangles, self._topology, flip=det < 0)
 

@@ -206,6 +206,21 @@ def test_keyed_scaled_rotated_box_distance_is_in_world_metres_at_two_times(scale
         np.testing.assert_allclose(box.world_vertices(t), V @ A[:3, :3].T + A[:3, 3], atol=1e-15)
 
 
+def test_a_float32_blender_matrix_is_placed_as_a_similarity_within_its_round_off():
+    half = np.array([0.4, 0.25, 0.6])
+    V, F = box_surface(half, cells=1)
+    exact = keyed_motion([1.3, 1.3, 1.3])
+    box = contact.MeshCollider(V, F, motion=lambda t: exact(t).astype(np.float32), name="float32")
+    A = exact(0.4)
+    rng = np.random.default_rng(4)
+    local = rng.uniform(-2.0, 2.0, size=(200, 3)) * half * 1.3
+    x = local @ (A[:3, :3] / 1.3).T + A[:3, 3]
+    d, n, _ = box.signed_distance(x, 0.4)
+    np.testing.assert_allclose(d, box_sdf(local, half * 1.3), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    assert box.surface(0.4).__class__.__name__ == "_Similar"      # no tree rebuilt per step
+
+
 def test_collider_velocity_is_the_secant_of_the_material_point():
     V, F = box_surface((0.4, 0.25, 0.6), cells=1)
     box = contact.MeshCollider(V, F, motion=keyed_box_motion)
