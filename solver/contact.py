@@ -305,9 +305,14 @@ class MeshCollider:
         friction: Coulomb coefficient mu >= 0. damping in [0, 1]: Blender's Collision `damping`,
           the share of the normal approach velocity removed by an impact (0 = no loss, 1 = no bounce).
         Closed meshes (box, sphere, any watertight mesh): inside is negative distance. Open meshes (a plane):
-          one-sided by the face normals, i.e. behind the plane is inside."""
+          one-sided by the face normals, i.e. behind the plane is inside.
+        Zero-area triangles are dropped (they have no normal to sign a distance with)."""
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
-        self.triangles = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+        F = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        V = self.vertices
+        area2 = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+        extent = np.ptp(V, axis=0).max() if len(V) else 0.0
+        self.triangles = np.ascontiguousarray(F[area2 > 1e-14 * extent ** 2])
         if len(self.triangles) == 0:
             raise ValueError(f"collider '{name}' has no triangles")
         self.motion = motion

@@ -133,6 +133,17 @@ def test_plane_distance_is_height_one_sided_and_positive_beyond_the_rim():
     np.testing.assert_allclose(closest[3], [1.0, 0.0, 0.0], atol=1e-12)
 
 
+def test_zero_area_triangles_are_ignored():
+    V, F = plane_mesh(1.0)
+    V = np.vstack([V, [[0.0, 0.0, 0.0]]])
+    F = np.vstack([F, [[0, 2, 4], [4, 4, 1]]])                 # on the diagonal; collapsed
+    plane = contact.MeshCollider(V, F)
+    assert len(plane.triangles) == 2
+    d, n, _ = plane.signed_distance(np.array([[0.0, 0.0, 0.01], [0.25, 0.25, -0.01]]), 0.0)
+    np.testing.assert_allclose(d, [0.01, -0.01], atol=1e-15)
+    np.testing.assert_allclose(n, [[0, 0, 1.0], [0, 0, 1.0]], atol=1e-15)
+
+
 def test_sphere_distance_matches_the_analytic_sphere_within_the_tessellation_sag():
     R = 0.7
     V, F = icosphere(R, 3)
