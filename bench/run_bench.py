@@ -299,7 +299,7 @@ CASES["spacetime"] = case_spacetime
 DYNAMICS_MODES = ("10", "20", "40")
 
 
-def _dynamics_body(num_modes):
+def _dynamics_body(num_modes, youngs=1e6):
     """The 10k-tet pinned 4:1:1 bar of the other cases (E = 1e6 Pa, nu = 0.45, 1100 kg/m^3)."""
     import numpy as np
     from solver import fem, meshgen, modes, rs
@@ -307,7 +307,8 @@ def _dynamics_body(num_modes):
     X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
     masses = fem.lumped_masses(X, T, 1100.0)
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, youngs, 0.45), masses, num_modes,
+                              pinned)
     return X, T, pinned, masses, body, rs.PoissonReconstruction(X, T, pinned)
 
 
@@ -472,6 +473,97 @@ def integrators_table(result):
          ("Newton it/step", ("iterations", "{:.2f}"))])
 
 
+def case_shot(arg, frames=240, fps=24, num_modes=20):
+    """A 240-frame shot of a ~20k-tet body (4:1:1 bar, 24,000 tets, E = 1e6 Pa, 20 modes) under
+    gravity at 24 fps with the defaults (Newmark, automatic substeps, no damping): prepare time
+    and frames per second of the whole shot. arg: cells across the bar (10 -> 24,000 tets)."""
+    import numpy as np
+    from solver import dynamics, fem, materials, meshgen, modes, reduced, rs
+    n = int(arg)
+    X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1100.0)
+    start = time.perf_counter()
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                             rs.PoissonReconstruction(X, T, pinned),
+                                             modal_rs=modal_rs)
+    prepare = time.perf_counter() - start
+    mu, lam = fem.lame_parameters(1e6, 0.45)
+    linear = materials.ReducedPotential.exact(materials.Linear(mu, lam), modal_rs,
+                                              fem.tet_volumes(X, T))
+    sim = dynamics.Simulation(deformer, X, masses, linear, 1.0 / fps, gravity=(0.0, 0.0, -9.81))
+    start = time.perf_counter()
+    trajectory = sim.run(frames)
+    seconds = time.perf_counter() - start
+    return dict(tets=len(T), nodes=len(X), modes=num_modes, basis_size=deformer.basis_size,
+                frames=frames, substeps=sim.substeps, prepare_seconds=prepare,
+                simulate_seconds=seconds, frames_per_second=frames / seconds,
+                iterations=float(np.mean(trajectory.iterations[1:])) / sim.substeps,
+                peak_rss_mb=peak_rss_mb())
+
+
+def shot_table(row):
+    return table("A 240-frame shot at 24 fps (4:1:1 bar under gravity, defaults: Newmark, "
+                 "automatic substeps)", [row],
+                 [("tets", ("tets", "{:,}")), ("modes", ("modes", "{}")),
+                  ("rB", ("basis_size", "{}")), ("substeps", ("substeps", "{}")),
+                  ("prepare s", ("prepare_seconds", "{:.1f}")),
+                  ("simulate s", ("simulate_seconds", "{:.1f}")),
+                  ("frames/s", ("frames_per_second", "{:.1f}")),
+                  ("Newton it/step", ("iterations", "{:.2f}")),
+                  ("peak RSS MB", ("peak_rss_mb", "{:.0f}"))])
+
+
+def amplitude_kept(tip_z, fps, window=0.5):
+    """RMS of a tip height trace (F,) about its mean over its last ``window`` seconds, in that
+    window over the first one: what is left of the motion (its square ~ the energy left), the
+    same measure for any solver and any mix of modes."""
+    import numpy as np
+    n = max(int(round(window * fps)), 2)
+    centre = float(np.mean(tip_z[-n:]))
+    return float(np.sqrt(np.mean((tip_z[-n:] - centre) ** 2)
+                         / np.mean((tip_z[:n] - centre) ** 2)))
+
+
+def case_ring(arg, fps=24, seconds=2.0, youngs=1e8):
+    """Energy kept after 2 s, the scene Blender's Soft Body runs too (``run_softbody``): the
+    pinned 4:1:1 bar released straight under gravity, no damping set, 24 fps. Ours: the 10k-tet
+    bar at E = 1e8 Pa (so it rings at about 3 Hz, several periods in 2 s, like the Soft Body
+    bar with its stiffest springs), 20 modes, defaults (Newmark, automatic substeps): the tip's
+    RMS motion in the last half second over the first (``amplitude_kept``), and the
+    integrator's own energy about the static sag, E(2 s) / E(0)."""
+    import numpy as np
+    from solver import dynamics, fem, materials, reduced, rs
+    X, T, pinned, masses, body, recon = _dynamics_body(int(arg), youngs)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                             recon, modal_rs=modal_rs)
+    mu, lam = fem.lame_parameters(youngs, 0.45)
+    linear = materials.ReducedPotential.exact(materials.Linear(mu, lam), modal_rs,
+                                              fem.tet_volumes(X, T))
+
+    def simulation():
+        return dynamics.Simulation(deformer, X, masses, linear, 1.0 / fps,
+                                   gravity=(0.0, 0.0, -9.81))
+
+    rest = simulation()
+    rest.static_equilibrium()
+    floor = rest.energy()["total"]
+    sim = simulation()
+    before = sim.energy()["total"] - floor
+    trajectory = sim.run(int(round(seconds * fps)))
+    kept = (sim.energy()["total"] - floor) / before
+    tip = int(np.argmax(X[:, 0] + 1e-3 * X[:, 2]))
+    tip_z = trajectory.world_positions(X[tip:tip + 1], deformer.basis[3 * tip:3 * tip + 3])
+    return dict(solver="RS Elastic (Newmark, automatic substeps)", tets=len(T),
+                energy_kept=kept, amplitude_kept=amplitude_kept(tip_z[:, 0, 2], fps),
+                f1_hz=float(sim.omega[0] / (2.0 * np.pi)))
+
+
+CASES["shot"] = case_shot
+CASES["ring"] = case_ring
 CASES["integrators"] = case_integrators
 CASES["dynamics"] = case_dynamics
 CASES["dynamics_reference"] = case_dynamics_reference
@@ -519,14 +611,19 @@ def pins_table(rows):
 CASES["pins"] = case_pins
 
 
-def run_softbody(frames=120, cuts=20):
+def run_softbody(frames=120, cuts=20, stiff=False):
     """Blender's own Soft Body on a bar of about the 10k-tet bar's node count (bench/softbody.py,
-    in its own process since it imports bpy)."""
+    in its own process since it imports bpy). stiff: the ringing variant, with the tip's motion
+    kept after 2 s at 24 fps (``amplitude_kept``), as in ``case_ring``."""
+    import numpy as np
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "softbody.py"), str(frames),
-                          str(cuts)], capture_output=True, text=True, cwd=ROOT)
+                          str(cuts), str(int(stiff))], capture_output=True, text=True, cwd=ROOT)
     if out.returncode != 0:
         return dict(case="softbody", arg=str(cuts), error=(out.stderr.strip().splitlines() or ["?"])[-1])
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    tip_z = np.array(row.pop("tip_z"))[:49]                     # frames 1..49: 2 s at 24 fps
+    row["amplitude_kept"] = amplitude_kept(tip_z, 24)
+    return row
 
 
 def softbody_table(softbody, dynamics):
@@ -542,6 +639,21 @@ def softbody_table(softbody, dynamics):
     if rs_row is not None and "steps_per_second" in rs_row:
         lines.append(f"| RS dynamics, 20 modes, cubature | {rs_row.get('tets', 0):,} tets "
                      f"| {1000.0 / rs_row['steps_per_second']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def ring_table(ring, softbody):
+    """Markdown: what is left of the motion after 2 s, ours against Soft Body (same scene)."""
+    lines = ["## Motion kept after 2 s (pinned 4:1:1 bar released under gravity, no damping set, "
+             "24 fps)", "", "| solver | tip RMS motion kept (last 0.5 s / first 0.5 s) | energy kept |", "|---|---|---|"]
+    if "error" not in ring:
+        lines.append(f"| {ring['solver']}, {ring['tets']:,} tets | {ring['amplitude_kept']:.3f} "
+                     f"| {ring['energy_kept']:.3f} |")
+    if "error" not in softbody:
+        lines.append(f"| Blender Soft Body ({softbody['vertices']:,} vertices, goal-pinned end, "
+                     "no friction, stiffest springs) | "
+                     f"{softbody['amplitude_kept']:.3f} | ~{softbody['amplitude_kept'] ** 2:.3f} "
+                     "(RMS kept squared; Soft Body reports no energy) |")
     return "\n".join(lines) + "\n"
 
 
@@ -616,12 +728,18 @@ def main():
     results["integrators"] = run_child("integrators", "20")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + integrators_table(results["integrators"])
+    results["shot"] = run_child("shot", "10")
+    results["ring"] = run_child("ring", "20")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + shot_table(results["shot"])
     results["pins"] = [run_child("pins", surface) for surface in ("box", "fine")]
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + pins_table(results["pins"])
     results["softbody"] = run_softbody()
+    results["softbody_ring"] = run_softbody(frames=49, cuts=8, stiff=True)
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + softbody_table(results["softbody"], results["dynamics"])
+    text += "\n" + ring_table(results["ring"], results["softbody_ring"])
     (output / "results.md").write_text(text)
     print(text)
 

@@ -111,6 +111,19 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         description="Steps per frame; 0 = automatic, from the body's highest mode frequency, "
                     "so the motion does not depend on the frame rate")
 
+    use_collisions: BoolProperty(
+        name="Collisions", default=True,
+        description="Collide with objects that have a Collision modifier (its Thickness Outer, "
+                    "Friction and Damping apply)")
+    collider_collection: PointerProperty(
+        type=bpy.types.Collection, name="Collider Collection",
+        description="Only collide with the colliders in this collection (empty: every collider "
+                    "in the scene)")
+    contact_samples: IntProperty(
+        name="Contact Samples", default=256, min=8, max=4096, soft_max=1024,
+        description="Surface points that feel the colliders; more catch smaller features and cost "
+                    "more per step")
+
     # --- Results, written by the operators -----------------------------------------------------------
     tet_node_count: IntProperty(name="Nodes", default=0)
     tet_count: IntProperty(name="Tets", default=0)

@@ -111,6 +111,15 @@ def base_vertices(obj):
     return co.reshape(-1, 3)
 
 
+def base_triangles(obj):
+    """(t, 3) int64 triangles of the mesh's own faces (over ``base_vertices``)."""
+    mesh = obj.data
+    mesh.calc_loop_triangles()
+    F = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("vertices", F)
+    return F.reshape(-1, 3)
+
+
 def evaluated_triangles(obj, depsgraph):
     """Object-space triangle soup of the evaluated mesh (modifiers applied).
 

@@ -3,11 +3,10 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import dynamics, fem, inversion, materials
-from . import bake, scene, spacetime_inputs
+from ..solver import contact, dynamics, fem, inversion, materials
+from . import bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
-from . import bodies, jobs, rs_tools     # the body's energy cubature (its fourth cache stage)
 
 
 @dataclasses.dataclass
@@ -87,6 +86,20 @@ def potential_for(tools, settings):
     return cache[key]
 
 
+def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
+    """The body's ``contact.Contact`` against the scene's colliders, or None without any."""
+    if not obj.rs_elastic.use_collisions:
+        return None
+    found = colliders.scene_colliders(obj, blender_scene, frames, h, world_to_sim)
+    if not found:
+        return None
+    points, rows, weights, masses = colliders.contact_samples(
+        scene.base_vertices(obj), scene.base_triangles(obj), tools.surface_basis, total_mass,
+        obj.rs_elastic.contact_samples)
+    return contact.Contact(found, points, rows, weights, masses,
+                           integrator=obj.rs_elastic.integrator.lower())
+
+
 def gather(obj, blender_scene):
     """Validate and set up the simulation. Raises InputError."""
     scene.require_body(obj)
@@ -119,11 +132,18 @@ def gather(obj, blender_scene):
     # The volume barrier over all tets keeps the body from inverting; tets let every step check.
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
-    simulation = dynamics.Simulation(
-        tools.deformer, tools.nodes, masses, potential, h, gravity=gravity,
-        mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
-        free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
-        substeps=settings.substeps, tets=tools.tets)
+    # A keyed body simulates in world space, a still one in its own object space.
+    world_to_sim = (np.eye(4) if frame_motion is not None
+                    else np.linalg.inv(np.array(obj.matrix_world)))
+    body_contact = contact_for(obj, blender_scene, tools, frames, h, world_to_sim, masses.sum())
+    try:
+        simulation = dynamics.Simulation(
+            tools.deformer, tools.nodes, masses, potential, h, gravity=gravity,
+            mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
+            free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
+            substeps=settings.substeps, tets=tools.tets, contact=body_contact)
+    except ValueError as exc:          # e.g. the body starts inside a collider
+        raise InputError(f"'{obj.name}': {exc}") from None
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), free, warnings)
 

@@ -3,9 +3,9 @@ import math
 
 import bpy
 
+from ..bridge import bodies, colliders
 from ..solver.dynamics import damping_ratio
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
-from ..bridge import bodies
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -28,6 +28,7 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
             layout.label(text=damping_label(settings, frequencies[0]))
         layout.prop(settings, "integrator")
         layout.prop(settings, "substeps")
+        draw_collisions(layout, context, settings)
         draw_frame_range(layout, settings)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
@@ -39,6 +40,18 @@ def energy_label(obj):
     if bodies.energy_ready(obj):
         return "Energy cubature: cached with the body"
     return "Energy cubature: trained when you simulate (Esc cancels)"
+
+
+def draw_collisions(layout, context, settings):
+    """The collision settings and the colliders the next simulation will see."""
+    layout.prop(settings, "use_collisions")
+    if not settings.use_collisions:
+        return
+    layout.prop(settings, "collider_collection")
+    layout.prop(settings, "contact_samples")
+    names = [obj.name for obj in colliders.collider_objects(context.active_object, context.scene)]
+    text = f"Colliders: {', '.join(names)}" if names else "No object with a Collision modifier"
+    layout.label(text=text, icon='MOD_PHYSICS')
 
 
 def damping_label(settings, frequency_hz):

@@ -13,6 +13,7 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``spacetime`` space-time editing with material optimisation (Gauss-Newton on banded systems).
 - ``materials`` linear, StVK and Fung materials on the Cauchy strain; the reduced potential V(s).
 - ``dynamics`` implicit-Euler subspace dynamics in RS coordinates, free or moving frames.
+- ``contact``  barrier, friction and damping contact of surface samples with mesh colliders.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
 

@@ -4,7 +4,9 @@
    - a rubber bar pinned at one end whose tip is pulled through two keyed Empties and released,
      solved by space-time editing with material optimisation and baked;
    - a jelly antenna pinned at its foot, simulated under gravity;
-   - a keyed prop (a rubber rod carried sideways and stopped), simulated: its secondary motion.
+   - a free jelly cube dropped onto a floor (a plane with a Collision modifier), simulated;
+   - a keyed prop (a rubber rod carried sideways and stopped), simulated: its secondary motion
+     swings its top into a wall (another Collision plane), which stops it.
 2. Modes (modes.blend, modes.png): a pinned bar and a free Suzanne at rest, along their first
    mode by the linear preview (which stretches and inflates) and by the RS preview at the same
    amplitude (which bends and keeps its volume).
@@ -42,7 +44,8 @@ def make_box(bpy, np, name, size, cuts, pin_axis=0, location=(0.0, 0.0, 0.0)):
     co = np.empty(len(obj.data.vertices) * 3)
     obj.data.vertices.foreach_get("co", co)
     shift = np.full(3, 0.0)
-    shift[pin_axis] = 0.5
+    if pin_axis is not None:
+        shift[pin_axis] = 0.5
     co = (co.reshape(-1, 3) + shift) * np.array(size)
     obj.data.vertices.foreach_set("co", co.ravel())
     obj.data.update()
@@ -68,6 +71,19 @@ def prepare(bpy, obj, preset, edge_length, num_modes=12):
     print(f"demo: {obj.name}: {s.tet_count} tets, modes {s.frequencies[0]:.2f} … "
           f"{s.frequencies[-1]:.2f} Hz, reduced basis {s.reduced_basis_count}, "
           f"cubature {s.cubature_count} tets")
+
+
+def add_collider(bpy, name, location, rotation, scale, damping, friction):
+    """A plane with a Collision modifier (its normal is the side bodies stay on)."""
+    bpy.ops.mesh.primitive_plane_add(size=2.0, location=location, rotation=rotation)
+    plane = bpy.context.active_object
+    plane.name = name
+    plane.scale = scale
+    plane.modifiers.new("Collision", 'COLLISION')
+    plane.collision.damping = damping
+    plane.collision.cloth_friction = friction
+    plane.color = (0.55, 0.55, 0.58, 1.0)
+    return plane
 
 
 def add_label(bpy, text, location, size=0.45, name=None):
@@ -127,20 +143,41 @@ def showcase(bpy, np, output):
           f"{len(bar.rs_elastic.solve_history)} objective values, last "
           f"{bar.rs_elastic.solve_history[-1].value:.4g}")
 
+    # A floor strip under the stage and a wall the keyed prop's top swings into.
+    add_collider(bpy, "Floor", (0.0, 0.0, -1.1), (0.0, 0.0, 0.0), (8.0, 1.2, 1.0),
+                 damping=0.6, friction=30.0)
+    add_collider(bpy, "Wall", (5.9, 0.0, 0.6), (0.0, -1.5708, 0.0), (1.7, 1.0, 1.0),
+                 damping=0.6, friction=30.0)
+
     # 2. Simulation: a jelly antenna, pinned at its foot, sags and wobbles under gravity.
     antenna = make_box(bpy, np, "Rubber Antenna", (0.4, 0.4, 2.5), 7, pin_axis=2,
-                       location=(0.3, 0.0, -1.0))
+                       location=(-1.0, 0.0, -1.0))
     antenna.rotation_euler = (0.0, 0.5, 0.0)        # leaning, so gravity bends it
     antenna.color = (0.35, 0.75, 0.35, 1.0)
     bpy.context.view_layer.objects.active = antenna
     bpy.ops.rs_elastic.apply_material_preset(preset='RUBBER')
     antenna.rs_elastic.youngs_modulus = 4e6          # stiff rubber: sags and wobbles, stands
+    antenna.rs_elastic.use_collisions = False        # its leaning foot is pinned in the floor
     prepare(bpy, antenna, None, 0.05, num_modes=10)
     antenna.rs_elastic.material_model = 'STVK'
     if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
         sys.exit("demo: simulating the antenna failed")
 
-    # 3. Secondary motion: a rod carried sideways from frame 1 to 12, then held.
+    # 3. A free jelly cube dropped onto the floor: it lands, squashes, bounces and settles.
+    jelly = make_box(bpy, np, "Jelly Drop", (0.8, 0.8, 0.8), 5, pin_axis=None,
+                     location=(1.4, 0.0, 1.9))
+    jelly.rotation_euler = (0.3, 0.4, 0.0)           # lands on a corner, then tips over
+    jelly.color = (0.9, 0.75, 0.2, 1.0)
+    bpy.context.view_layer.objects.active = jelly
+    bpy.ops.rs_elastic.apply_material_preset(preset='RUBBER')
+    jelly.rs_elastic.youngs_modulus = 3e5
+    jelly.rs_elastic.damping_mass = 0.5
+    prepare(bpy, jelly, None, 0.08, num_modes=12)
+    if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
+        sys.exit("demo: simulating the jelly drop failed")
+
+    # 4. Secondary motion: a rod carried sideways from frame 1 to 12, then held: its top
+    #    swings on into the wall and stops there.
     prop = make_box(bpy, np, "Keyed Prop", (0.3, 0.3, 2.4), 7, pin_axis=2,
                     location=(3.0, 0.0, -1.0))
     prop.color = (0.3, 0.55, 0.85, 1.0)
@@ -156,7 +193,8 @@ def showcase(bpy, np, output):
     if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
         sys.exit("demo: simulating the prop failed")
 
-    for text, x in (("space-time edit", -4.5), ("simulated, gravity", 0.9), ("keyed prop", 4.3)):
+    for text, x in (("space-time edit", -4.5), ("gravity", -0.6), ("dropped on a floor", 1.4),
+                    ("keyed prop, wall", 4.3)):
         add_label(bpy, text, (x, 0.0, -1.7), 0.35)
     frame_label = add_label(bpy, "frame", (-6.8, 0.0, 3.8), 0.45, name="Frame Label")
     stage(bpy, (-0.7, -15.0, 0.6), 33, TILE)
