@@ -486,14 +486,6 @@ def rest_surface(obj, depsgraph):
         depsgraph.update()
 
 
-def _base_triangles(obj):
-    mesh = obj.data
-    mesh.calc_loop_triangles()
-    F = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int64)
-    mesh.loop_triangles.foreach_get("vertices", F)
-    return F.reshape(-1, 3)
-
-
 def read_inputs(obj, depsgraph, with_material=True):
     """Validate the object and snapshot everything the stages need. Raises InputError."""
     scene.require_body(obj)
@@ -523,7 +515,7 @@ def read_inputs(obj, depsgraph, with_material=True):
             raise InputError(f"Every vertex of '{obj.name}' is in pin group "
                              f"'{settings.pin_group}': nothing is left free to move")
         inputs.pin_weights = weights
-        inputs.base_triangles = _base_triangles(obj)
+        inputs.base_triangles = scene.base_triangles(obj)
     inputs.fingerprint = fingerprint(obj)
     inputs.youngs = settings.youngs_modulus
     inputs.poisson = settings.poisson_ratio
