@@ -337,3 +337,27 @@ def test_a_start_inside_a_collider_fails_clearly(free_cube):
     with pytest.raises(ValueError, match="rows"):
         simulation(free_cube, 0.1, free=True,
                    contact=QuadraticContact(free_cube["X"][idx], rows[:, :3]))
+    euler_contact = QuadraticContact(free_cube["X"][idx], rows)
+    euler_contact.alpha = 1.0                   # solver.contact's implicit Euler end velocity
+    with pytest.raises(ValueError, match="integrator"):
+        simulation(free_cube, 0.1, free=True, contact=euler_contact)
+
+
+def test_a_frame_keyed_into_a_collider_within_one_step_fails_clearly(pinned_bar):
+    """A pinned bar whose keyed frame drops it 1 m through a floor 5 cm below it in one frame:
+    neither start guess of that step is outside, so the step raises instead of passing through."""
+    idx, rows = corner_samples(pinned_bar)
+    floor = QuadraticContact(pinned_bar["X"][idx], rows, floor=pinned_bar["X"][:, 2].min() - 0.05,
+                             stiffness=1.0)
+    floor.evaluate_penalty = floor.evaluate
+
+    def inside_is_infinite(x, order=2):
+        if np.any(x[:, 2] <= floor.floor):
+            return np.inf, None, None
+        return floor.evaluate_penalty(x, order)
+    floor.evaluate = inside_is_infinite
+    motion = dynamics.FrameMotion([0.0, 1.0 / 24.0], np.stack([np.eye(3)] * 2),
+                                  [[0, 0, 0], [0, 0, -1.0]])
+    sim = simulation(pinned_bar, 1.0 / 24.0, frame_motion=motion, contact=floor)
+    with pytest.raises(ValueError, match="no start guess"):
+        sim.step()
