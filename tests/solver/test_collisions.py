@@ -6,7 +6,7 @@ energy against m g h), a frictionless slide at exactly g sin(theta), Coulomb sti
 mu > tan(theta), and a swinging bar stopped by a wall it would otherwise pass.
 
 Bodies are built like ``test_dynamics.build_body`` (modes, second-order RS basis, cubature),
-here with an optional rigid placement of the rest mesh; sizes keep the file near 30 s.
+here with an optional rigid placement of the rest mesh; the file runs in about 5 s.
 """
 
 import time
