@@ -142,7 +142,7 @@ def gather(obj, blender_scene):
             mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
             free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
             substeps=settings.substeps, tets=tools.tets, contact=body_contact)
-    except ValueError as exc:          # e.g. the body starts inside a collider
+    except ValueError as exc:          # e.g. contact samples that do not fit the basis
         raise InputError(f"'{obj.name}': {exc}") from None
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), free, warnings)
@@ -160,6 +160,9 @@ def run(job_inputs, job):
                                                should_cancel=job.is_cancelled)
     except dynamics.SimulationCancelled:
         raise Cancelled() from None
+    except dynamics.ContactError as exc:       # starts inside a collider, or run into by one
+        raise InputError(f"The simulation of '{job_inputs.object_name}' stopped: {exc}. "
+                         "Nothing was baked") from None
     except dynamics.InversionError as exc:
         raise InputError(f"The simulation of '{job_inputs.object_name}' stopped at frame "
                          f"{job_inputs.frames[0] + exc.frame}: {exc.detail}. Nothing was "
