@@ -78,7 +78,7 @@ def test_a_keyed_prop_swung_into_a_wall_stops_at_it(ext):
     wall_y = 3.0 + 1.0 + 0.05       # the bar's far side at rest is y = 4.0 once held
     free_reach = tip_reach()
     assert free_reach > wall_y + 0.05                             # the control passes the wall
-    wall = add_plane_collider("Wall", (2.0, wall_y, 0.5), rotation=(1.5708, 0.0, 0.0))
+    wall = add_plane_collider("Wall", (2.0, wall_y, 0.5), rotation=(np.pi / 2.0, 0.0, 0.0))
     assert np.allclose(np.array(wall.matrix_world)[:3, 2], (0.0, -1.0, 0.0), atol=1e-6)
     make_active(obj)
     stopped_reach = tip_reach()
