@@ -183,7 +183,7 @@ ext.solver.materials.train_energy_cubature = no_training
 result = bpy.ops.rs_elastic.simulate()
 sim = ext.bridge.simulation_inputs
 inputs = sim.gather(obj, bpy.context.scene)
-potential = inputs.simulation.potential
+potential = inputs.simulation.potential.potential     # the material's, inside the barrier
 poses = sim.run(inputs, ext.bridge.jobs.Job(None))
 np.savez({out!r}, tets=potential.tets, weights=potential.weights,
          strain_modes=potential.strain_modes, poses=poses)
@@ -209,7 +209,8 @@ def fresh_poses(ext, obj):
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
     sim = ext.bridge.simulation_inputs
     inputs = sim.gather(obj, bpy.context.scene)
-    return inputs.simulation.potential, sim.run(inputs, ext.bridge.jobs.Job(None))
+    material = inputs.simulation.potential.potential   # inside the volume barrier
+    return material, sim.run(inputs, ext.bridge.jobs.Job(None))
 
 
 def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, tmp_path):
