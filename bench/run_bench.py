@@ -562,6 +562,40 @@ def case_ring(arg, fps=24, seconds=2.0, youngs=1e8):
                 f1_hz=float(sim.omega[0] / (2.0 * np.pi)))
 
 
+def case_contact(arg, seconds=3.0):
+    """Steps per second with substeps and contact: the soft cube of tests/solver/
+    test_collisions.py (0.2 m, 384 tets, 8 modes, E = 2e4 Pa, 60 contact samples) dropped 1 m
+    onto a floor quad, 3 s at 24 fps with ``arg`` substeps, against the same fall with no floor
+    (so without contact). Steps are internal steps (frames x substeps)."""
+    import numpy as np
+    from solver import dynamics
+    from tests.solver.test_collisions import FPS, GRAVITY, build_body, quad, simulate
+    substeps = int(arg)
+    body = build_body((0.2, 0.2, 0.2), (4, 4, 4), 2e4, offset=np.array([-0.1, -0.1, 1.0]))
+    floor = quad([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], damping=0.5)
+    _, beta = dynamics.rayleigh_from_damping_ratio(0.05, body["omega"][0], 1.0)
+    frames = int(round(seconds * FPS))
+    row = dict(substeps=substeps, tets=len(body["T"]), samples=len(body["idx"]))
+    for name, colliders in (("contact", [floor]), ("no_contact", None)):
+        trajectory, _, wall = simulate(body, colliders, frames, gravity=GRAVITY, free=True,
+                                       stiffness_damping=beta, substeps=substeps)
+        row[f"{name}_steps_per_second"] = frames * substeps / wall
+        row[f"{name}_iterations"] = float(np.mean(trajectory.iterations[1:])) / substeps
+    row["peak_rss_mb"] = peak_rss_mb()
+    return row
+
+
+def contact_table(rows):
+    return table("Contact: a soft cube dropped 1 m onto a floor, 3 s at 24 fps (free body, 60 "
+                 "contact samples), against the same fall without the floor", rows,
+                 [("substeps", ("substeps", "{}")), ("tets", ("tets", "{}")),
+                  ("steps/s with contact", ("contact_steps_per_second", "{:.0f}")),
+                  ("Newton it/step", ("contact_iterations", "{:.2f}")),
+                  ("steps/s no contact", ("no_contact_steps_per_second", "{:.0f}")),
+                  ("Newton it/step (no contact)", ("no_contact_iterations", "{:.2f}"))])
+
+
+CASES["contact"] = case_contact
 CASES["shot"] = case_shot
 CASES["ring"] = case_ring
 CASES["integrators"] = case_integrators
@@ -732,6 +766,9 @@ def main():
     results["ring"] = run_child("ring", "20")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + shot_table(results["shot"])
+    results["contact"] = [run_child("contact", n) for n in ("1", "4")]
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + contact_table(results["contact"])
     results["pins"] = [run_child("pins", surface) for surface in ("box", "fine")]
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + pins_table(results["pins"])
