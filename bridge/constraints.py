@@ -4,6 +4,7 @@ import dataclasses
 
 import numpy as np
 
+from ..solver import spacetime
 from . import animation, bake, scene
 
 
@@ -15,6 +16,26 @@ class HandleTrack:
     weight: float
     frames: np.ndarray     # (c,) int scene frames
     targets: np.ndarray    # (c, 3) metres, object space
+    rotation_frames: np.ndarray = None   # (o,) int scene frames of the orientation targets
+    rotations: np.ndarray = None         # (o, 3, 3) handle rotation from rest, object space
+
+
+ROTATION_PATHS = ("rotation_euler", "rotation_quaternion", "rotation_axis_angle")
+
+
+def _orientation_frames(empty, handle, wanted, frame_set):
+    """Every frame of the span of the Empty's rotation keys (and the position frames).
+
+    Every frame, not only the keys: a target only knows the rotation modulo 360 deg and the
+    solve keeps the winding only when successive targets are close (solver.spacetime,
+    "Winding"); evaluated per frame, the keyed F-curve's rotation moves little between
+    neighbouring frames, so a 360 deg key is no longer the same target as 0.
+    """
+    if handle.follow:
+        return sorted(frame_set)
+    keyed = {f for path in ROTATION_PATHS for f in animation.keyed_frames(empty, path)}
+    keyed = [f for f in keyed | set(wanted) if f in frame_set]
+    return [int(f) for f in spacetime.winding_span(keyed) if int(f) in frame_set]
 
 
 def _is_motion_key(keys, block):
@@ -45,30 +66,51 @@ def read_handles(obj, blender_scene, frames):
             wanted = sorted(frame_set)
         else:
             wanted = [f for f in animation.keyed_frames(empty, "location") if f in frame_set]
-        if not wanted:
+        turning = (_orientation_frames(empty, handle, wanted, frame_set)
+                   if getattr(handle, "orientation", False) else [])
+        if not wanted and not turning:
             warnings.append(f"{label}: no location keys in the frame range; ignored")
             continue
-        plans.append((empty, indices, handle.weight, np.array(wanted)))
-    targets = _world_to_body(obj, blender_scene, plans)
-    tracks = [HandleTrack(empty.name, indices, weight, wanted, targets[i])
-              for i, (empty, indices, weight, wanted) in enumerate(plans)]
+        plans.append((empty, indices, handle.weight, np.array(wanted, dtype=np.int64),
+                      np.array(turning, dtype=np.int64)))
+    targets, rotations = _world_to_body(obj, blender_scene, plans, min(frame_set))
+    tracks = [HandleTrack(empty.name, indices, weight, wanted, targets[i],
+                          turning if len(turning) else None,
+                          rotations[i] if len(turning) else None)
+              for i, (empty, indices, weight, wanted, turning) in enumerate(plans)]
     return tracks, warnings
 
 
-def _world_to_body(obj, blender_scene, plans):
-    """Each plan's Empty positions on its frames, in the body's object space at that frame."""
-    needed = sorted({int(f) for *_, wanted in plans for f in wanted})
+def _rotation(matrix):
+    """(3, 3) rotation part (scale removed) of a Blender matrix."""
+    return np.array(matrix.to_quaternion().to_matrix())
+
+
+def _world_to_body(obj, blender_scene, plans, first):
+    """Each plan's Empty positions on its frames, in the body's object space at that frame, and
+    its rotations on its orientation frames: O(f) O(first)^T, O = (body rotation)^T (Empty
+    rotation), i.e. the turn since the range's first frame, where the body is at rest."""
+    needed = sorted({int(f) for plan in plans for f in np.r_[plan[3], plan[4]]}
+                    | ({int(first)} if any(len(plan[4]) for plan in plans) else set()))
     current = blender_scene.frame_current
-    at_frame = {}
+    at_frame, turned = {}, {}
     try:
         for frame in needed:       # one scene evaluation per frame, shared by all handles
             blender_scene.frame_set(frame)
             to_body = np.array(obj.matrix_world.inverted())
+            body = _rotation(obj.matrix_world)
             at_frame[frame] = {empty.name: (to_body @ np.r_[np.array(empty.matrix_world.translation), 1.0])[:3]
                                for empty, *_ in plans}
+            turned[frame] = {empty.name: body.T @ _rotation(empty.matrix_world)
+                             for empty, *_ in plans}
     finally:
         blender_scene.frame_set(current)
-    return [np.array([at_frame[int(f)][empty.name] for f in wanted]) for empty, _, _, wanted in plans]
+    targets = [np.array([at_frame[int(f)][empty.name] for f in wanted]).reshape(-1, 3)
+               for empty, _, _, wanted, _ in plans]
+    rotations = [np.array([turned[int(f)][empty.name] @ turned[int(first)][empty.name].T
+                           for f in turning]).reshape(-1, 3, 3)
+                 for empty, _, _, _, turning in plans]
+    return targets, rotations
 
 
 def read_pose_keys(obj, frames):

@@ -31,6 +31,10 @@ class RSElasticHandle(bpy.types.PropertyGroup):
                                  description="The vertices whose centroid follows the Empty")
     follow: BoolProperty(name="Follow Every Frame", default=False,
                          description="Constrain every frame of the range, not only the keyed ones")
+    orientation: BoolProperty(name="Orientation", default=False,
+                              description="Follow the Empty's rotation too (turns since the first "
+                                          "frame of the range, winding included: a 360° key "
+                                          "twists the vertices a full turn)")
     weight: FloatProperty(name="Weight", default=1.0, min=0.0, soft_max=10.0,
                           description="How strongly this handle pulls, relative to the others")
     residual: FloatProperty(name="Residual", default=-1.0, subtype='DISTANCE',

@@ -98,6 +98,19 @@ def gather(obj, blender_scene):
         handle_parts.append((track.frames - first, np.repeat(rows[None], c, axis=0),
                              np.repeat(rest_centroid[None], c, axis=0), track.targets,
                              np.full(c, track.weight)))
+        if track.rotations is not None:     # Orientation: spokes of the same vertices
+            try:
+                spoke_rows, spokes = spacetime.orientation_geometry(rest, tools.surface_basis,
+                                                                    track.vertices)
+            except ValueError:
+                warnings.append(f"Handle '{track.name}': its vertices lie on a line, so they "
+                                "have no orientation to follow; only its position is used")
+            else:
+                part = spacetime.orientation_constraints(track.rotation_frames - first,
+                                                         track.rotations, spoke_rows, spokes,
+                                                         track.weight)
+                handle_parts.append(part)
+                c += len(part[0])
         track_slices.append((handle_index[track.name], slice(count, count + c)))
         count += c
 

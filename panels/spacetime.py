@@ -13,6 +13,7 @@ class RS_ELASTIC_UL_handles(bpy.types.UIList):
         row.label(text=empty.name if empty is not None else "(deleted)",
                   icon='ERROR' if deleted else 'EMPTY_AXIS')
         row.label(text=item.vertex_group, icon='GROUP_VERTEX')
+        row.prop(item, "orientation", text="", icon='ORIENTATION_GIMBAL')
         if item.residual >= 0.0:
             row.label(text=f"{item.residual:.2g} m")
 
