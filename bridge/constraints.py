@@ -78,7 +78,23 @@ def read_handles(obj, blender_scene, frames):
                           turning if len(turning) else None,
                           rotations[i] if len(turning) else None)
               for i, (empty, indices, weight, wanted, turning) in enumerate(plans)]
+    warnings += [f"Handle '{track.name}': its Empty turns more than {FAST_TURN_DEG}° between "
+                 "two frames; the twist's winding may be lost (key more slowly)"
+                 for track in tracks if track.rotations is not None and _fastest_turn(track)
+                 > np.radians(FAST_TURN_DEG)]
     return tracks, warnings
+
+
+FAST_TURN_DEG = 90   # per-frame turn above which per-frame targets no longer carry the winding
+
+
+def _fastest_turn(track):
+    """Largest rotation angle [rad] between the track's successive orientation targets."""
+    R = track.rotations
+    if len(R) < 2:
+        return 0.0
+    trace = np.einsum("fji,fji->f", R[:-1], R[1:])
+    return float(np.arccos(np.clip(0.5 * (trace - 1.0), -1.0, 1.0)).max())
 
 
 def _rotation(matrix):

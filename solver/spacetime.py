@@ -86,6 +86,8 @@ class HandleConstraints:
     frames (c,) int frame indices in [0, F); rows (c, 3, rB) rows of B (or Phi B) averaged over
     the handle's vertices [m per unit q]; rest (c, 3) rest centroid [m]; targets (c, 3) [m] in
     the body's rest frame; weights (c,) >= 0 dimensionless (multiplied by the problem's gamma).
+    Any linear functional of the displacement fits: an orientation handle's spokes (rows of
+    first moments, ``orientation_geometry``) are constraints of this same form.
 
     Derived on construction: ``frame_list`` (u,) the distinct constrained frames and
     ``frame_index`` (c,) into it; ``handle_rows`` (H, 3, rB) the distinct rows and

@@ -54,3 +54,42 @@ def test_keyed_full_turn_of_an_orientation_handle_is_baked_with_its_winding(ext)
           f"{np.abs(error[2:]).max():.3f} deg, handle residual {handle.residual:.2g} m")
     assert np.abs(error[checked]).max() <= 1.0
     assert np.abs(error[2:]).max() <= 1.0       # frames 0 and 1 are held at rest
+
+
+def test_orientation_targets_every_frame_of_the_keyed_span_and_warns_of_fast_turns(ext):
+    """Read back without a solve. Oracle: the keyed linear Euler angle about the bar's axis
+    (rotation from the range's first frame, in the body's frame), and the 90 deg/frame limit."""
+    obj = make_bar()
+    obj.rotation_euler = (0.0, 0.0, 0.4)
+    bpy.context.view_layer.update()
+    empty, _ = add_tip_handle(obj, {2: (0.0, 0.0, 0.0)})
+    empty.rotation_mode = 'XYZ'
+    read = ext.bridge.constraints.read_handles
+    frames = list(range(0, 11))
+    for frame, turn in ((0, 0.0), (8, 2.0 * np.pi)):
+        empty.rotation_euler = (turn, 0.0, 0.4)
+        empty.keyframe_insert("rotation_euler", frame=frame)
+    for curve in ext.bridge.animation.fcurves(empty):
+        for point in curve.keyframe_points:
+            point.interpolation = 'LINEAR'
+    (track,), warnings = read(obj, bpy.context.scene, frames)
+    assert track.rotations is None and track.frames.tolist() == [2] and not warnings
+    obj.rs_elastic.handles[0].orientation = True
+    (track,), warnings = read(obj, bpy.context.scene, frames)
+    assert track.frames.tolist() == [2] and track.rotation_frames.tolist() == list(range(9))
+    angle = np.radians(45.0) * track.rotation_frames          # 360 deg over 8 frames
+    c, s = np.cos(angle), np.sin(angle)
+    np.testing.assert_allclose(track.rotations[:, 1:, 1:],
+                               np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2),
+                               atol=1e-6)
+    np.testing.assert_allclose(track.rotations[:, 0, 0], 1.0, atol=1e-6)
+    assert not warnings
+    empty.keyframe_delete("rotation_euler", frame=8)
+    empty.rotation_euler = (2.0 * np.pi, 0.0, 0.4)           # 360 deg in 3 frames: 120/frame
+    empty.keyframe_insert("rotation_euler", frame=3)
+    for curve in ext.bridge.animation.fcurves(empty):
+        for point in curve.keyframe_points:
+            point.interpolation = 'LINEAR'
+    (track,), warnings = read(obj, bpy.context.scene, frames)
+    assert track.rotation_frames.tolist() == [0, 1, 2, 3]
+    assert len(warnings) == 1 and "more than 90°" in warnings[0]
