@@ -763,7 +763,7 @@ def carried_objective(problem, Z, S, eigenvalues, damping, mu, S_new):
     value, grad_s = sampling_objective(problem, Zc, S_new, mu)
     value += control_energy(Zc, eigenvalues, damping, problem.h, problem.scheme)
     G = z_gradient(problem, Zc, eigenvalues, damping, S_new)[first:]            # (n, r)
-    gram_inv = np.linalg.inv(S_new.T @ S_new)                                   # (r, r)
+    gram_inv = np.linalg.pinv(S_new.T @ S_new)      # (r, r); pinv: L-BFGS may try a singular S
     P = gram_inv @ S_new.T                                                      # (r, m)
     A = G.T @ (Z[first:] @ S.T)                                                 # (r, m)
     Q = np.eye(len(S_new)) - S_new @ P
@@ -807,7 +807,8 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
 
     iterations: GN steps (default 50) without material optimisation; outer block-descent
     rounds (default 20) with it, each round = up to ``gn_iterations`` GN steps, the (lambda, d)
-    fit and up to ``sampling_iterations`` L-BFGS-B iterations on S; after the last round Z is
+    fit and, for a rectangular S only (module doc), up to ``sampling_iterations`` L-BFGS-B
+    iterations on S with Z carried; after the last round Z is
     solved again (up to 50 GN steps) for the final material, so no control force is left that
     the material change made unnecessary. tolerance: relative decrease of J (and relative step
     size) under which a GN run stops; round_tolerance: relative decrease of J over a round
