@@ -14,6 +14,7 @@ import sys
 import bpy
 
 from . import bake
+from . import spacetime_inputs
 from .spacetime_inputs import MAX_FRAMES
 
 OPERATORS = {"spacetime": "solve_spacetime", "simulate": "simulate"}
@@ -124,7 +125,9 @@ def bake_command(args):
         raise CommandError(f"could not save {output}: "
                            f"{str(exc).replace('Error: ', '').strip().splitlines()[0]}") from None
     frames = bake.bake_frames(obj)
-    return f"baked frames {frames[0]}-{frames[-1]} of '{obj.name}' into {output}"
+    status = spacetime_inputs.LAST_STATUS.get(obj.name) if args.mode == "spacetime" else None
+    return (f"baked frames {frames[0]}-{frames[-1]} of '{obj.name}' into {output}"
+            + ("" if status is None else f"\nrs_elastic: {status[1]}"))
 
 
 def _say_error(message):

@@ -175,6 +175,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Optimize Material", default=False,
         description="Also optimise frequencies, damping and mode shapes so the motion stays "
                     "physically consistent (slower)")
+    material_freedom: FloatProperty(
+        name="Material Freedom", default=1.5, min=1.0, soft_max=4.0, precision=2,
+        description="How much Optimize Material may change the body: every mode's frequency and "
+                    "damping stays within this factor of the prepared body's (1 keeps them, 2 "
+                    "allows half to double); within it, changes are still resisted")
     tightness: FloatProperty(
         name="Tightness", default=1e4, min=1.0, soft_max=1e8,
         description="How tightly handles and pose keys are met against the control force: a "

@@ -21,6 +21,10 @@ class SpaceTimeJob:
     warnings: list
 
 
+# Last solve's (converged, sentence) per object name, for the panel and the command line; set by
+# the worker (plain Python, no bpy), lost with the session like the job itself.
+LAST_STATUS = {}
+
 MAX_FRAMES = 10000   # a bake is one shape key per frame: beyond this it is not usable
 
 
@@ -35,6 +39,23 @@ def frame_range(obj, blender_scene):
     if end - start + 1 > MAX_FRAMES:
         raise InputError(f"The frame range {start}–{end} has more than {MAX_FRAMES} frames")
     return list(range(start, end + 1))
+
+
+def optimised_modes(candidates):
+    """How many modes material optimisation optimises out of ``candidates`` prepared ones.
+
+    [L14]'s sampling matrix S (candidates x optimised) chooses which combinations of the
+    candidate modes matter; with as many optimised modes as candidates it could only mix them.
+    Two thirds keep most of the edit's freedom while leaving S a third of the modes to pick from.
+    """
+    return max(1, -(-2 * candidates // 3)) if candidates > 1 else candidates
+
+
+def status_sentence(result):
+    """(converged, one line) of a ``SpaceTimeResult`` for the panel and the command line."""
+    if result.converged:
+        return True, f"Solve converged ({result.reason})"
+    return False, f"Solve did not converge: {result.reason}"
 
 
 def prepared_tools(obj):
@@ -136,7 +157,9 @@ def gather(obj, blender_scene):
                          + (f" ({'; '.join(warnings)})" if warnings else ""))
 
     modes = tools.body.linear_modes
-    eigenvalues = modes.eigenvalues[:tools.deformer.num_coords]
+    candidates = tools.deformer.num_coords
+    optimised = optimised_modes(candidates) if settings.optimize_material else candidates
+    eigenvalues = modes.eigenvalues[:optimised]      # S = [I; 0] (candidates x optimised)
     damping = spacetime.rayleigh_damping(eigenvalues, settings.damping_mass,
                                          settings.damping_stiffness)
     h = blender_scene.render.fps_base / blender_scene.render.fps
@@ -155,7 +178,7 @@ def gather(obj, blender_scene):
     problem = spacetime.SpaceTimeProblem(
         frames=len(frames), h=h, eigenvalues=eigenvalues, damping=damping,
         deformer=tools.deformer, handles=handles, keyframes=keyframes, gamma=gamma,
-        fix_start=not settings.use_take)
+        fix_start=not settings.use_take, material_freedom=settings.material_freedom)
     return SpaceTimeJob(obj.name, frames, problem, settings.optimize_material,
                         settings.iterations, tools, rest, track_slices, warnings)
 
@@ -173,6 +196,9 @@ def solve(job_inputs, job):
     except spacetime.SolveCancelled:
         from .jobs import Cancelled
         raise Cancelled() from None
+    LAST_STATUS[job_inputs.object_name] = status_sentence(result)
+    if not result.converged:            # reported with the other warnings when the bake is applied
+        job_inputs.warnings.append(status_sentence(result)[1])
     q = job_inputs.tools.deformer.q_batch(result.inputs)                 # (F, rB)
     displacement = q @ job_inputs.tools.surface_basis.T                    # (F, 3n)
     poses = job_inputs.rest[None] + displacement.reshape(len(q), -1, 3)

@@ -1,7 +1,7 @@
 """Space-time editing: handles, the solve and its bake."""
 import bpy
 
-from ..bridge import bake
+from ..bridge import bake, spacetime_inputs
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
 
@@ -48,6 +48,8 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "damping_stiffness")
         layout.prop(settings, "iterations")
         layout.prop(settings, "optimize_material")
+        if settings.optimize_material:
+            layout.prop(settings, "material_freedom")
         layout.prop(settings, "use_take")
         if settings.use_take:
             layout.prop(settings, "take_weight")
@@ -55,6 +57,13 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
         layout.use_property_split = False
         layout.operator("rs_elastic.solve_spacetime", icon='PLAY')
         draw_bake_buttons(layout)
+        status = spacetime_inputs.LAST_STATUS.get(obj.name)
+        if status is not None:
+            converged, text = status
+            col = layout.column(align=True)
+            for i, line in enumerate(text.split("; ")):
+                col.label(text=line, icon=('CHECKMARK' if converged else 'ERROR') if i == 0
+                          else 'BLANK1')
         frames = bake.bake_frames(obj)
         if frames:
             layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')

@@ -7,6 +7,7 @@ displacement is ``rows @ q`` with ``rows`` precomputed rows of B (tet nodes) or 
 vertices). Objective (all terms in SI units of the mass-normalised modal space)::
 
     J(Z, Lam, D, S) = E_f(Z, Lam, D) + gamma E_c(S, Z) + E_k(S, Z) + mu E_s(S)
+                      [+ rho E_m(Lam, D, S) with material optimisation, see below]
     E_f = 1/2 sum_{i=1}^{F-2} |(z_{i+1} - 2 z_i + z_{i-1})/h^2 + D (z_{i+1} - z_{i-1})/(2h)
                                + Lam z_i|^2                 (Lam z_i: see "scheme" below)
     E_c = 1/2 sum_c w_c |rows_c q(S z_{i_c}) + rest_c - target_c|^2      (handles, metres^2)
@@ -42,9 +43,27 @@ Choices written down here:
   ``WARM_TIGHTNESS`` (``handle_tightness``), raising it by ``WARM_FACTOR`` per stage, and starts
   the real solve from there if that lowers J (history entry "warm").
 - **Material**: block coordinate descent, each block never increasing J: (1) Z by GN/LM;
-  (2) per mode (lambda_k, d_k) >= 0 by the exact two-unknown NNLS of E_f; a mode whose motion is
-  negligible keeps its values (E_f does not see it); (3) S by L-BFGS-B on
-  gamma E_c + E_k + mu E_s with the analytic gradient, reverted if J did not decrease.
+  (2) per mode (lambda_k, d_k) by the exact two-unknown bounded least squares of
+  E_f + rho E_m (``fit_material``); a mode whose motion is negligible keeps its values;
+  (3) only for a rectangular S (more candidate modes m than optimised modes r, [L14]'s
+  "which modes matter"), S by L-BFGS-B with the analytic gradient on J with Z *carried*
+  (``carried_objective``: z_i re-fitted so S z_i keeps its value, so S can move along a stiff
+  handle's valley; at fixed Z it could not, and S never moved). A square S could only mix the
+  modes among themselves, which with the carried Z lowered J by ~1 % per round for 40 rounds
+  without end on a 90 deg handle edit: it is left out. A round is repeated until J falls by less
+  than ``round_tolerance`` (relative) over it; then Z is solved once more for the final
+  material, so the free tail after the last constraint carries no control force.
+- **Material regulariser**: J also has rho E_m with
+  E_m = 1/2 sum_k ((lambda_k - lambda0_k)/lambda0_k)^2 + ((d_k - d0_k)/(2 sqrt(lambda0_k)))^2
+  + 1/2 |S - S0|_F^2, (lambda0, d0, S0) the prepared material: to first order the change of
+  log lambda (frequency) and of the damping ratio, both dimensionless. Why: a handle-only edit
+  carries no information about the material, and E_f alone prefers a soft, undamped body (the
+  handles then move it for free; issue 12: sqrt(lambda_1) 2.33 -> 0.64 in 10 rounds, 0.48 in 40,
+  damping to 0, never converging. On top, ``material_freedom`` f is a hard bound
+  (``material_bounds``): sqrt(lambda_k) within [1/f, f], d_k within [1/f, f] of prepared.
+  rho = ``material_weight``, or (None) ``MATERIAL_PULL`` E_f / r chosen with mu (E_m = 0 then):
+  a 20 % change of one frequency (44 % in lambda) costs about its mode's share of E_f. Data that
+  do determine the material (keyframes of an input animation) may want a smaller rho.
 - **mu**: E_c and E_k see only S z, so S -> a S, z -> z / a lowers E_f by a^2 for free; E_s is
   what stops that drift. ``mu=None`` (default) sets mu = ``MU_RELATIVE`` E_f / r once, after
   the first Z block and before any material block runs, so the objective stays one function for
@@ -70,6 +89,9 @@ WARM_TOLERANCE = 1e-6  # relative decrease that ends a continuation stage
 MU_RELATIVE = 100.0    # auto mu = MU_RELATIVE * E_f / r (S columns then stay within ~1 % of unit)
 TIGHTNESS = 1e4        # default constraint/dynamics ratio of ``suggest_weights``
 DEGENERATE_MOTION = 1e-12  # relative size under which a mode is "not moving" for the (lam, d) fit
+MATERIAL_FREEDOM = 1.5     # default bound: each frequency and damping within this factor of prepared
+MATERIAL_PULL = 10.0       # auto rho = MATERIAL_PULL * E_f / r (module doc, "Material regulariser")
+ROUND_TOLERANCE = 1e-3     # a material round lowering J by less than this (relative) has converged
 
 
 class SolveCancelled(Exception):
@@ -186,7 +208,10 @@ class SpaceTimeProblem:
     mu: E_s weight (None: automatic, module doc); sampling (m, r) initial S (default [I; 0]);
     fix_start: hold frames 0 and 1 at start_state (2, r) (default zeros: start at rest).
     scheme: time discretisation of E_f, "central", "average" or "auto" (module doc), resolved
-    on construction.
+    on construction. material_freedom f >= 1 (dimensionless; inf: no bound): material
+    optimisation keeps every sqrt(lambda_k) within [1/f, f] and d_k within [1/f, f] times the
+    prepared ``eigenvalues`` / ``damping``; material_weight rho [E_f units] of the pull E_m toward
+    them (None: automatic). See the module doc, "Material regulariser".
     """
 
     frames: int
@@ -202,6 +227,8 @@ class SpaceTimeProblem:
     fix_start: bool = True
     start_state: Optional[np.ndarray] = None
     scheme: str = "auto"
+    material_freedom: float = MATERIAL_FREEDOM
+    material_weight: Optional[float] = None
 
     def __post_init__(self):
         self.frames = int(self.frames)
@@ -222,6 +249,10 @@ class SpaceTimeProblem:
             raise ValueError(f"need at least 3 frames and h > 0 (got {self.frames}, {self.h})")
         if m < r:
             raise ValueError(f"the deformer takes {m} coordinates, fewer than the {r} modes")
+        if not self.material_freedom >= 1.0:
+            raise ValueError(f"material_freedom must be >= 1 (got {self.material_freedom})")
+        if self.material_weight is not None and not self.material_weight >= 0.0:
+            raise ValueError(f"material_weight must be >= 0 (got {self.material_weight})")
         if self.fix_start and self.frames < 4:
             raise ValueError("with a fixed start at least 4 frames are needed")
         for name, c in (("handle", self.handles), ("keyframe", self.keyframes)):
@@ -253,8 +284,10 @@ class SpaceTimeResult:
     handle_residuals (c,) [m] distance of each handle from its target; keyframe_residuals (k,)
     |S z - zhat|; history: list of (iteration, block, J) with block in "start", "warm", "z",
     "material", "sampling" (non-increasing); iterations: GN iterations done (continuation
-    included); converged: bool; mu: the E_s weight used; scheme: E_f's time discretisation
-    (pass it to ``simulate_modal`` to continue the motion).
+    included); converged: bool, and ``reason`` (str) a sentence saying why not (or how it
+    converged); mu: the E_s weight used; material_weight: rho of E_m used (0 without material
+    optimisation); scheme: E_f's time discretisation (pass it to ``simulate_modal`` to continue
+    the motion). ``objective`` includes rho E_m; ``control_energy`` is E_f alone.
     """
 
     Z: np.ndarray
@@ -270,6 +303,8 @@ class SpaceTimeResult:
     converged: bool = False
     mu: float = 0.0
     scheme: str = "central"
+    reason: str = ""
+    material_weight: float = 0.0
 
     @property
     def inputs(self):
@@ -562,12 +597,20 @@ class _State:
         self.Z, self.S = Z, problem.sampling.copy()
         self.eigenvalues, self.damping = problem.eigenvalues.copy(), problem.damping.copy()
         self.mu, self.lm, self.iterations = mu, 0.0, 0
+        self.rho = 0.0                       # weight of E_m; set by _choose_weights
         self.value = self.evaluate()
         self.history = [(0, "start", self.value)]
 
     def evaluate(self, Z=None, S=None):
-        return objective(self.problem, self.Z if Z is None else Z, self.eigenvalues,
-                         self.damping, self.S if S is None else S, self.mu)
+        """J + rho E_m at the state, with Z or S replaced if given."""
+        value = objective(self.problem, self.Z if Z is None else Z, self.eigenvalues,
+                          self.damping, self.S if S is None else S, self.mu)
+        if self.rho > 0.0:
+            value += self.rho * (material_energy(self.eigenvalues, self.damping,
+                                                 self.problem.eigenvalues, self.problem.damping)
+                                 + sampling_change(self.S if S is None else S,
+                                                   self.problem.sampling)[0])
+        return value
 
     def record(self, iteration, block, callback):
         self.history.append((iteration, block, self.value))
@@ -644,15 +687,51 @@ def _optimise_z(state, iterations, tolerance, outer, callback, should_cancel):
     return False
 
 
-def fit_material(Z, h, eigenvalues, damping, scheme="central"):
-    """Per mode the exact minimiser of E_f over (lambda_k, d_k) >= 0 for fixed Z (F, r).
+def material_bounds(eigenvalues, damping, freedom):
+    """(lower (2, r), upper (2, r)) of (lambda, d) around prepared values (r,) for factor f.
+
+    lambda in [lambda0 / f^2, lambda0 f^2] (frequency within a factor f), d in [d0 / f, d0 f];
+    f = inf gives [0, inf) for both. A prepared value of 0 stays 0 unless f is infinite.
+    """
+    prepared = np.stack([eigenvalues, damping]).astype(np.float64)
+    factor = np.array([freedom ** 2, freedom], dtype=np.float64)[:, None]
+    if np.isinf(freedom):
+        return np.zeros_like(prepared), np.full_like(prepared, np.inf)
+    return prepared / factor, prepared * factor
+
+
+def material_scales(eigenvalues):
+    """(2, r) divisors turning (lambda - lambda0, d - d0) into E_m's residuals: (lambda0,
+    2 sqrt(lambda0)), i.e. the change of log lambda and of the damping ratio to first order."""
+    lam = np.maximum(np.asarray(eigenvalues, dtype=np.float64), 1e-300)
+    return np.stack([lam, 2.0 * np.sqrt(lam)])
+
+
+def material_energy(eigenvalues, damping, prepared_eigenvalues, prepared_damping):
+    """E_m = 1/2 sum_k ((lambda_k - lambda0_k) / lambda0_k)^2 + ((d_k - d0_k) / 2 sqrt(lambda0_k))^2
+    (dimensionless float; module doc, "Material regulariser")."""
+    change = np.stack([eigenvalues, damping]) - np.stack([prepared_eigenvalues, prepared_damping])
+    return 0.5 * float(np.sum((change / material_scales(prepared_eigenvalues)) ** 2))
+
+
+def sampling_change(S, S0):
+    """1/2 |S - S0|_F^2 (E_m's mode-shape part, dimensionless) and its gradient (m, r)."""
+    return 0.5 * float(np.sum((S - S0) ** 2)), S - S0
+
+
+def fit_material(Z, h, eigenvalues, damping, scheme="central", prepared=None, weight=0.0,
+                 freedom=np.inf):
+    """Per mode the exact minimiser of E_f + weight E_m over (lambda_k, d_k) in their bounds.
 
     E_f of mode k is 1/2 |[s, v] (lambda, d) + acc|^2 over frames 1..F-2, with s = z_i
     ("central") or (z_{i-1} + 2 z_i + z_{i+1}) / 4 ("average"), v = (z_{i+1} - z_{i-1}) / 2h,
-    acc = (z_{i+1} - 2 z_i + z_{i-1}) / h^2: a two-column NNLS (columns scaled to unit norm for
-    conditioning). A column that is negligible (relative ``DEGENERATE_MOTION`` to the largest of
-    its kind) leaves its parameter at the value in ``eigenvalues`` / ``damping`` (r,): E_f does
-    not see it. Returns (lambda (r,), d (r,)).
+    acc = (z_{i+1} - 2 z_i + z_{i-1}) / h^2; E_m (``material_energy``, about ``prepared`` =
+    (lambda0 (r,), d0 (r,)), default the given values) adds two rows, so each mode is a
+    two-column bounded least-squares problem (``material_bounds`` with factor ``freedom``;
+    default [0, inf): plain NNLS), solved exactly by BVLS with columns scaled to unit norm. A
+    column that is negligible (relative ``DEGENERATE_MOTION`` to the largest of its kind), or a
+    parameter whose bounds coincide, keeps the value in ``eigenvalues`` / ``damping`` (r,)
+    (clipped to its bounds). Returns (lambda (r,), d (r,)).
     """
     w = stiffness_weights(scheme)
     stiffness = w[0] * Z[:-2] + w[1] * Z[1:-1] + w[2] * Z[2:]
@@ -660,20 +739,31 @@ def fit_material(Z, h, eigenvalues, damping, scheme="central"):
     acc = (Z[2:] - 2.0 * Z[1:-1] + Z[:-2]) / h ** 2                        # (F-2, r)
     norms = np.linalg.norm(columns, axis=0)                                # (2, r)
     used = norms > DEGENERATE_MOTION * np.maximum(norms.max(axis=1, keepdims=True), 1e-300)
-    params = np.stack([eigenvalues, damping]).astype(np.float64)           # (2, r)
-    for k in np.flatnonzero(used.any(axis=0)):       # r <= ~40 tiny NNLS problems
+    origin = (np.stack([eigenvalues, damping]) if prepared is None
+              else np.stack(prepared)).astype(np.float64)                  # (2, r)
+    lower, upper = material_bounds(origin[0], origin[1], freedom)
+    used &= upper > lower
+    params = np.clip(np.stack([eigenvalues, damping]).astype(np.float64), lower, upper)
+    pull = np.sqrt(weight) / material_scales(origin[0])                    # (2, r)
+    for k in np.flatnonzero(used.any(axis=0)):       # r <= ~40 tiny bounded problems
         use = used[:, k]
-        rhs = -acc[:, k] - columns[:, ~use, k] @ params[~use, k]
-        x, _ = scipy.optimize.nnls(columns[:, use, k] / norms[use, k], rhs)
-        params[use, k] = x / norms[use, k]
+        rhs = np.concatenate([-acc[:, k] - columns[:, ~use, k] @ params[~use, k],
+                              pull[use, k] * origin[use, k]])
+        scale = norms[use, k]
+        A = np.concatenate([columns[:, use, k], np.diag(pull[use, k])]) / scale
+        x = scipy.optimize.lsq_linear(A, rhs, bounds=(lower[use, k] * scale,
+                                                      upper[use, k] * scale),
+                                      method="bvls").x
+        params[use, k] = np.clip(x / scale, lower[use, k], upper[use, k])
     return params[0], params[1]
 
 
 def _optimise_material(state, outer, callback):
-    """Block (2): exact (lambda, d) >= 0; kept only if J does not increase."""
+    """Block (2): exact bounded (lambda, d) of E_f + rho E_m; kept only if J does not increase."""
     problem = state.problem
     lam, dmp = fit_material(state.Z, problem.h, state.eigenvalues, state.damping,
-                            problem.scheme)
+                            problem.scheme, (problem.eigenvalues, problem.damping),
+                            state.rho, problem.material_freedom)
     old = state.eigenvalues, state.damping
     state.eigenvalues, state.damping = lam, dmp
     value = state.evaluate()
@@ -704,20 +794,67 @@ def sampling_objective(problem, Z, S, mu):
     return value, grad
 
 
+def z_gradient(problem, Z, eigenvalues, damping, S):
+    """dJ/dZ (F, r) at fixed material and S (E_f, handles and keyframes; E_s does not see Z)."""
+    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme)
+    if _has(problem.handles):
+        res, Jx = _handle_terms(problem, Z, S, True)
+        np.add.at(grad, problem.handles.frames, np.einsum("cdm,cd,mr->cr", Jx, res, S))
+    if _has(problem.keyframes):
+        keys = problem.keyframes
+        np.add.at(grad, keys.frames,
+                  np.sqrt(keys.weights)[:, None] * (_keyframe_terms(problem, Z, S) @ S))
+    return grad
+
+
+def carried_z(problem, Z, S, S_new):
+    """(F, r) Z' with S_new z'_i the least-squares fit of the inputs S z_i (start frames kept)."""
+    first = problem.first_free
+    carried = Z.copy()
+    carried[first:] = np.linalg.lstsq(S_new, S @ Z[first:].T, rcond=None)[0].T
+    return carried
+
+
+def carried_objective(problem, Z, S, eigenvalues, damping, mu, S_new):
+    """J(Z'(S_new), S_new) with Z' = ``carried_z`` (deformer inputs held), and d/dS_new (m, r).
+
+    With P = (S'^T S')^-1 S'^T, Z' = Zhat P^T (Zhat = Z S^T fixed), dP = -P dS' P
+    + (S'^T S')^-1 dS'^T (I - S' P); with A = G_Z^T Zhat (G_Z = dJ/dZ' on the free frames) the
+    gradient is G_S - P^T A P^T + (I - S' P) A^T (S'^T S')^-1, G_S = dJ/dS' at fixed Z'.
+    Holding the inputs lets S move along the handles' valley instead of across it: at fixed Z
+    a stiff handle pins S z and S barely moves per block.
+    """
+    first = problem.first_free
+    Zc = carried_z(problem, Z, S, S_new)
+    value, grad_s = sampling_objective(problem, Zc, S_new, mu)
+    value += control_energy(Zc, eigenvalues, damping, problem.h, problem.scheme)
+    G = z_gradient(problem, Zc, eigenvalues, damping, S_new)[first:]            # (n, r)
+    gram_inv = np.linalg.pinv(S_new.T @ S_new)      # (r, r); pinv: L-BFGS may try a singular S
+    P = gram_inv @ S_new.T                                                      # (r, m)
+    A = G.T @ (Z[first:] @ S.T)                                                 # (r, m)
+    Q = np.eye(len(S_new)) - S_new @ P
+    return value, grad_s - P.T @ A @ P.T + Q @ A.T @ gram_inv
+
+
 def _optimise_sampling(state, iterations, outer, callback):
-    """Block (3): S by L-BFGS-B with the analytic gradient, reverted unless J decreased."""
+    """Block (3): S by L-BFGS-B on J with Z carried (``carried_objective``), kept if J fell."""
     problem, shape = state.problem, state.S.shape
 
     def fun(flat):
-        value, grad = sampling_objective(problem, state.Z, flat.reshape(shape), state.mu)
-        return value, grad.reshape(-1)
+        S = flat.reshape(shape)
+        value, grad = carried_objective(problem, state.Z, state.S, state.eigenvalues,
+                                        state.damping, state.mu, S)
+        pull, pull_grad = sampling_change(S, problem.sampling)
+        return value + state.rho * pull, (grad + state.rho * pull_grad).reshape(-1)
 
     found = scipy.optimize.minimize(fun, state.S.reshape(-1), jac=True, method="L-BFGS-B",
                                     options=dict(maxiter=iterations))
     S = found.x.reshape(shape)
-    value = state.evaluate(S=S)
-    if value < state.value:
-        state.S, state.value = S, value
+    if np.all(np.isfinite(S)) and np.linalg.matrix_rank(S) == shape[1]:
+        Z = carried_z(problem, state.Z, state.S, S)
+        value = state.evaluate(Z=Z, S=S)
+        if value < state.value:
+            state.Z, state.S, state.value = Z, S, value
     state.record(outer, "sampling", callback)
 
 
@@ -731,17 +868,21 @@ def _check_cancel(should_cancel):
 
 def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
           sampling_iterations=30, tolerance=1e-9, initial=None, continuation=True,
-          callback=None, should_cancel=None):
+          callback=None, should_cancel=None, round_tolerance=ROUND_TOLERANCE):
     """Minimise J over Z (and, with ``optimise_material``, over Lambda, D and S).
 
     iterations: GN steps (default 50) without material optimisation; outer block-descent
-    rounds (default 10) with it, each round = up to ``gn_iterations`` GN steps, the (lambda, d)
-    fit and up to ``sampling_iterations`` L-BFGS-B iterations on S. tolerance: relative
-    decrease of J (and relative step size) under which a GN run, or a whole round, stops.
-    initial: (F, r) starting Z (default zeros; start frames are overwritten by start_state).
-    continuation: run the penalty continuation for stiff handles first (module doc).
-    callback(iteration, J) after every recorded step; should_cancel() -> bool polled between
-    steps, raising ``SolveCancelled``. Returns ``SpaceTimeResult``.
+    rounds (default 20) with it, each round = up to ``gn_iterations`` GN steps, the (lambda, d)
+    fit and, for a rectangular S only (module doc), up to ``sampling_iterations`` L-BFGS-B
+    iterations on S with Z carried; after the last round Z is
+    solved again (up to 50 GN steps) for the final material, so no control force is left that
+    the material change made unnecessary. tolerance: relative decrease of J (and relative step
+    size) under which a GN run stops; round_tolerance: relative decrease of J over a round
+    under which the material descent has converged. initial: (F, r) starting Z (default zeros;
+    start frames are overwritten by start_state). continuation: run the penalty continuation
+    for stiff handles first (module doc). callback(iteration, J) after every recorded step;
+    should_cancel() -> bool polled between steps, raising ``SolveCancelled``. Returns
+    ``SpaceTimeResult`` (``converged`` and ``reason`` say whether each stage converged).
     """
     Z = np.zeros((problem.frames, problem.num_modes)) if initial is None else \
         np.array(initial, dtype=np.float64).reshape(problem.frames, problem.num_modes)
@@ -752,23 +893,36 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
     if continuation:
         _warm_start(state, gn_cap, tolerance, callback, should_cancel)
     if not optimise_material:
-        return _result(state, _optimise_z(state, gn_cap, tolerance, None, callback,
-                                          should_cancel))
+        done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
+        return _result(state, done, "converged" if done else
+                       f"Gauss-Newton did not converge in {gn_cap} steps")
 
-    converged = _optimise_z(state, gn_iterations, tolerance, 0, callback, should_cancel)
-    if problem.mu is None:
-        _choose_mu(state)
-    for outer in range(1, 1 + (10 if iterations is None else int(iterations))):
+    _optimise_z(state, gn_iterations, tolerance, 0, callback, should_cancel)
+    _choose_weights(state)
+    rounds = 20 if iterations is None else int(iterations)
+    rounds_done, change = False, np.inf
+    for outer in range(1, 1 + rounds):
         before = state.value
         _optimise_z(state, gn_iterations, tolerance, outer, callback, should_cancel)
         _check_cancel(should_cancel)
         _optimise_material(state, outer, callback)
         _check_cancel(should_cancel)
-        _optimise_sampling(state, sampling_iterations, outer, callback)
-        converged = before - state.value <= tolerance * max(state.value, 1e-300)
-        if converged:
+        if state.S.shape[0] > state.S.shape[1]:     # square S could only mix the modes
+            _optimise_sampling(state, sampling_iterations, outer, callback)
+        change = (before - state.value) / max(state.value, 1e-300)
+        rounds_done = change <= round_tolerance
+        if rounds_done:
             break
-    return _result(state, converged)
+    _check_cancel(should_cancel)
+    z_done = _optimise_z(state, 50, tolerance, rounds + 1, callback, should_cancel)
+    reasons = ([] if rounds_done else
+               [f"the material still lowered the objective by {change:.1e} (relative) in "
+                f"round {rounds} of {rounds}: allow more iterations"])
+    if not z_done:
+        reasons.append("the motion for the final material did not converge in 50 "
+                       "Gauss-Newton steps")
+    return _result(state, rounds_done and z_done, "; ".join(reasons) or
+                   f"converged in {outer} material rounds")
 
 
 def _warm_start(state, iterations, tolerance, callback, should_cancel):
@@ -810,21 +964,26 @@ def _handle_curvature(deformer, rows, S):
     return np.linalg.norm(np.asarray(rows) @ (dq @ S), ord=2, axis=(1, 2)) ** 2
 
 
-def _choose_mu(state):
-    """Automatic mu from E_f after the first Z block (module doc).
+def _choose_weights(state):
+    """Automatic mu and rho from E_f after the first Z block (module doc).
 
-    S has not moved yet, so mu E_s(S0) is one constant for every entry so far: adding it keeps
-    the history one function of the unknowns (it is 0 for the default [I; 0]).
+    S and the material have not moved yet, so mu E_s(S0) is one constant for every entry so
+    far (0 for the default [I; 0]) and rho E_m is 0: adding them keeps the history one function
+    of the unknowns.
     """
-    e_f = control_energy(state.Z, state.eigenvalues, state.damping, state.problem.h,
-                         state.problem.scheme)
-    state.mu = MU_RELATIVE * e_f / state.problem.num_modes if e_f > 0.0 else 1.0
-    shift = state.mu * sampling_energy(state.S)[0]
+    problem = state.problem
+    e_f = control_energy(state.Z, state.eigenvalues, state.damping, problem.h, problem.scheme)
+    per_mode = e_f / problem.num_modes
+    if problem.mu is None:
+        state.mu = MU_RELATIVE * per_mode if e_f > 0.0 else 1.0
+    state.rho = (float(problem.material_weight) if problem.material_weight is not None
+                 else MATERIAL_PULL * per_mode if e_f > 0.0 else 1.0)
+    shift = state.evaluate() - state.value
     state.history = [(i, block, value + shift) for i, block, value in state.history]
-    state.value = state.evaluate()
+    state.value += shift
 
 
-def _result(state, converged):
+def _result(state, converged, reason):
     problem = state.problem
     keys = problem.keyframes
     key_res = (np.linalg.norm(state.Z[keys.frames] @ state.S.T - keys.poses, axis=1)
@@ -836,7 +995,8 @@ def _result(state, converged):
                                       problem.scheme),
         handle_residuals=handle_residuals(problem, state.Z, state.S),
         keyframe_residuals=key_res, history=state.history, iterations=state.iterations,
-        converged=bool(converged), mu=state.mu, scheme=problem.scheme)
+        converged=bool(converged), mu=state.mu, scheme=problem.scheme, reason=reason,
+        material_weight=state.rho)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -177,6 +177,8 @@ def test_command_line_bakes_a_saved_file_and_returns_exit_codes(ext, tmp_path):
     good = run_cli(blend, ["bake", "--object", "Bar", "--frames", "1-30", "--output", str(out)])
     assert good.returncode == 0, good.stdout + good.stderr
     assert "rs_elastic: baked frames 1-30 of 'Bar'" in good.stdout
+    assert ("rs_elastic: Solve converged" in good.stdout
+            or "rs_elastic: Solve did not converge: " in good.stdout), good.stdout
     bpy.ops.wm.open_mainfile(filepath=str(out))
     assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == list(range(1, 31))
 
@@ -186,3 +188,43 @@ def test_command_line_bakes_a_saved_file_and_returns_exit_codes(ext, tmp_path):
     assert errors == ["rs_elastic: error: no object named 'Nobody' in " + str(blend)]
     assert run_cli(blend, ["bake"]).returncode == 2                    # --object is required
     assert run_cli(blend, ["bake", "--object", "Bar", "--frames", "9-3"]).returncode == 2
+
+
+class _QuietJob:
+    """The worker's job interface without a thread: progress ignored, never cancelled."""
+
+    def step(self, fraction, text):
+        pass
+
+    def is_cancelled(self):
+        return False
+
+
+def test_material_optimisation_chooses_modes_and_stays_within_material_freedom(ext):
+    """Optimize Material solves with more candidate modes than optimised ones ([L14]'s S), keeps
+    every frequency and damping within Material Freedom of the prepared body's, and leaves the
+    convergence verdict for the panel and the command line."""
+    obj, empty, tip = prepared_bar_with_tip_handle({15: (3.0, 3.5, 2.5), 35: (2.0, 3.0, 3.0)})
+    settings = obj.rs_elastic
+    settings.optimize_material = True
+    settings.material_freedom = 1.2
+    inputs = ext.bridge.spacetime_inputs
+    job_inputs = inputs.gather(obj, bpy.context.scene)
+    problem = job_inputs.problem
+    m, r = problem.sampling.shape
+    assert m == job_inputs.tools.deformer.num_coords and r == inputs.optimised_modes(m) < m
+    assert problem.material_freedom == pytest.approx(1.2)
+    result, poses = inputs.solve(job_inputs, _QuietJob())
+    frequency = np.sqrt(result.eigenvalues / problem.eigenvalues)
+    damping = result.damping / problem.damping
+    print(f"Blender material solve: {m} candidate modes, {r} optimised; converged "
+          f"{result.converged} ({result.reason}); frequency ratios [{frequency.min():.3f}, "
+          f"{frequency.max():.3f}], damping ratios [{damping.min():.3f}, {damping.max():.3f}]")
+    f = problem.material_freedom            # 1.2 as Blender's float32 stores it
+    for ratios in (frequency, damping):
+        assert np.all(ratios >= (1 - 1e-12) / f) and np.all(ratios <= f * (1 + 1e-12))
+    history = result.objective_history
+    assert np.all(np.diff(history) <= 1e-12 * history[0])
+    assert inputs.LAST_STATUS[obj.name] == inputs.status_sentence(result)
+    assert inputs.LAST_STATUS[obj.name][0] == result.converged
+    assert poses.shape == (len(job_inputs.frames), len(vertices(obj)), 3)
