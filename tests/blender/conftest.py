@@ -2,6 +2,7 @@
 folder and enabled, before any test imports bpy. Run through `make test-blender`."""
 import os
 import pathlib
+import shutil
 import sys
 import tempfile
 
@@ -50,6 +51,9 @@ def pytest_sessionfinish(session, exitstatus):
 def pytest_unconfigure(config):
     """Test harness only: the bpy module of Blender 4.2 and 4.3 crashes at interpreter exit once an
     add-on has registered classes (see blender_session.exit_child), which would turn a green run
-    into a SIGSEGV. There the run ends here, after pytest has reported, with pytest's own status."""
+    into a SIGSEGV. There the run ends here, after pytest has reported, with pytest's own status.
+    The throw-away Blender user folder (the installed extension, ~270 MB) goes first, on every
+    version, so repeated runs do not fill the temp folder."""
+    shutil.rmtree(USER_DIR, ignore_errors=True)
     if bpy.app.version < (4, 4, 0):
         blender_session.exit_child(_exit_status)
