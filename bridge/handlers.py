@@ -55,6 +55,7 @@ def unregister():
         bpy.app.handlers.save_post.remove(_move_cache_after_save)
     if _forget_fingerprints in bpy.app.handlers.depsgraph_update_post:
         bpy.app.handlers.depsgraph_update_post.remove(_forget_fingerprints)
+    live.cancel()
     for name, handler in (("depsgraph_update_post", _live_resolve),
                           ("frame_change_post", _live_frame)):
         if handler in getattr(bpy.app.handlers, name):

@@ -35,8 +35,16 @@ LIVE_GN_STEPS = 3     # GN steps of a warm re-solve (a small handle move converg
 class LiveSolution:
     frames: list          # scene frames, ascending
     Z: np.ndarray         # (F, r) modal inputs, the next re-solve's warm start
-    poses: np.ndarray     # (F, n, 3) base-vertex positions [object units]
+    inputs: np.ndarray    # (F, m) deformer inputs S z per frame
+    tools: object         # rs_tools.RSTools the solve used (deformer, surface basis)
+    rest: np.ndarray      # (n, 3) base vertices [object units]
     status: str           # one line for the panel
+
+    def pose(self, index):
+        """(n, 3) base-vertex positions of frame ``frames[index]``: only the shown frame is
+        reconstructed, which is most of a re-solve's cost when done for every frame."""
+        q = self.tools.deformer.q(self.inputs[index])                       # (rB,)
+        return self.rest + (self.tools.surface_basis @ q).reshape(-1, 3)
 
 
 SOLUTIONS = {}        # object name -> LiveSolution (session only, like the solve status)
@@ -50,7 +58,7 @@ _TIMER_ON = [False]
 # The solve (worker thread: no bpy)
 
 def _solve(job):
-    """(Z, poses, status) for a gathered ``SpaceTimeJob``, warm-started if a fitting Z exists."""
+    """(Z, inputs, status) for a gathered ``SpaceTimeJob``, warm-started if a fitting Z exists."""
     previous = SOLUTIONS.get(job.object_name)
     shape = (job.problem.frames, job.problem.num_modes)
     warm = (previous is not None and previous.Z.shape == shape
@@ -60,12 +68,10 @@ def _solve(job):
                                  continuation=False)
     else:
         result = spacetime.solve(job.problem, iterations=job.iterations)
-    q = job.tools.deformer.q_batch(result.inputs)                       # (F, rB)
-    poses = job.rest[None] + (q @ job.tools.surface_basis.T).reshape(len(q), -1, 3)
     how = "warm" if warm else "cold"
     status = (f"Live: {how} re-solve, {result.iterations} steps, largest handle miss "
               f"{float(result.handle_residuals.max(initial=0.0)):.2g}")
-    return result.Z, poses, status
+    return result.Z, result.inputs, status
 
 
 # ---------------------------------------------------------------------------------------------
@@ -79,7 +85,7 @@ def show(obj, blender_scene):
         preview.hide(obj)
         return False
     scene.require_single_user(obj)
-    pose = solution.poses[frame - solution.frames[0]]
+    pose = solution.pose(frame - solution.frames[0])
     # Shape keys add: a bake key at 1 on this frame would add its own displacement on top of
     # the preview's, so the preview carries the difference to the bake (the bake is not touched).
     baked = {f: b for f, b in bake._frames_and_blocks(obj, "bake", bake.BAKE_PREFIX)}
@@ -109,13 +115,12 @@ def resolve_now(obj, blender_scene):
     """Gather, solve (warm if possible) and show, synchronously. Returns the status line;
     raises InputError if the edit cannot be solved."""
     job = spacetime_inputs.gather(obj, blender_scene)
-    Z, poses, status = _solve(job)
-    _store(obj, blender_scene, job, Z, poses, status)
+    _store(obj, blender_scene, job, *_solve(job))
     return status
 
 
-def _store(obj, blender_scene, job, Z, poses, status):
-    SOLUTIONS[obj.name] = LiveSolution(list(job.frames), Z, poses, status)
+def _store(obj, blender_scene, job, Z, inputs, status):
+    SOLUTIONS[obj.name] = LiveSolution(list(job.frames), Z, inputs, job.tools, job.rest, status)
     ERRORS.pop(obj.name, None)
     show(obj, blender_scene)
 
@@ -278,3 +283,14 @@ def flush():
     for name in names:
         _start(name, synchronous=True)
     return names
+
+
+def cancel():
+    """Extension unloading: stop the timer and forget queued re-solves (a running worker
+    finishes on its own; its result is dropped)."""
+    import bpy
+    if bpy.app.timers.is_registered(_tick):
+        bpy.app.timers.unregister(_tick)
+    _TIMER_ON[0] = False
+    _PENDING.clear()
+    _RUNNING.clear()
