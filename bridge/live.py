@@ -86,6 +86,10 @@ def show(obj, blender_scene):
         return False
     scene.require_single_user(obj)
     pose = solution.pose(frame - solution.frames[0])
+    if not np.all(np.isfinite(pose)):       # a diverged re-solve must not reach the mesh
+        ERRORS[obj.name] = "Live: the re-solve diverged; move the handle back or run Solve and Bake"
+        preview.hide(obj)
+        return False
     # Shape keys add: a bake key at 1 on this frame would add its own displacement on top of
     # the preview's, so the preview carries the difference to the bake (the bake is not touched).
     baked = {f: b for f, b in bake._frames_and_blocks(obj, "bake", bake.BAKE_PREFIX)}
