@@ -296,6 +296,96 @@ def spacetime_table(rows):
 CASES["spacetime"] = case_spacetime
 
 
+LIVE_STEPS = (1, 2, 3)     # GN steps allowed to a warm live re-solve (bridge/live.py uses 3)
+
+
+def case_live(arg, frames=100, repeats=7):
+    """Warm live re-solve (bridge/live.py) on the 10k-tet bar, reduced RS; arg "MODES".
+
+    Two handles (cross-sections at 3/5 and 5/5 of the length) keyed onto the 45 deg / 90 deg
+    arcs of ``case_spacetime`` at 30 % and 60 % of 100 frames. A cold solve (default, with
+    continuation) gives Z0; then the tip handle's 60 % target moves by 1 % of the diagonal and
+    the edit is re-solved from Z0 with k GN steps and no continuation (median of ``repeats``).
+    Quality: its objective against a full cold solve of the moved edit, and the tip's miss.
+    """
+    import numpy as np
+    from solver import fem, meshgen, modes, reduced, rs, spacetime
+    num_modes = int(arg)
+    n, length = BAR_SIZES["10k"], 4.0
+    X, T = meshgen.box_tet_mesh((length, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1100.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    recon = rs.PoissonReconstruction(X, T, pinned)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
+    planes = np.unique(X[:, 0])
+    stations = planes[np.searchsorted(planes, length * np.array([0.6, 1.0]) - 1e-9)]
+    handles = [spacetime.handle_geometry(X, deformer.basis,
+                                         np.flatnonzero(np.abs(X[:, 0] - s) < 1e-9))
+               for s in stations]
+
+    def arc(s, angle):
+        return np.array([np.sin(angle * s / length), 0.0, np.cos(angle * s / length) - 1.0]
+                        ) * length / angle + [0.0, 0.5, 0.5]
+
+    diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    h = 1.0 / 24.0
+    damping = spacetime.rayleigh_damping(body.eigenvalues, 0.1, 0.002)
+    targets = np.array([arc(s, a) for a in (np.pi / 4, np.pi / 2) for s in stations])
+
+    def problem(targets):
+        constraints = spacetime.HandleConstraints(
+            frames=np.repeat([round(0.3 * frames), round(0.6 * frames)], 2),
+            rows=[g[0] for g in handles] * 2, rest=[g[1] for g in handles] * 2,
+            targets=targets, weights=1.0)
+        gamma, _ = spacetime.suggest_weights(h, body.eigenvalues, damping, deformer,
+                                             constraints.rows)
+        return spacetime.SpaceTimeProblem(frames, h, body.eigenvalues, damping, deformer,
+                                          handles=constraints, gamma=gamma)
+
+    start = time.perf_counter()
+    first = spacetime.solve(problem(targets))
+    cold_seconds = time.perf_counter() - start
+    moved = targets.copy()
+    moved[3] += [0.0, 0.0, 0.01 * diagonal]        # the tip's 60 % target
+    edited = problem(moved)
+    start = time.perf_counter()
+    reference = spacetime.solve(edited)
+    reference_seconds = time.perf_counter() - start
+    rows = []
+    for steps in LIVE_STEPS:
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            warm = spacetime.solve(edited, iterations=steps, initial=first.Z,
+                                   continuation=False)
+            times.append(time.perf_counter() - start)
+        rows.append(dict(modes=num_modes, frames=frames, handles=2, gn_steps=steps,
+                         ms=1e3 * float(np.median(times)),
+                         objective_ratio=warm.objective / reference.objective,
+                         tip_miss=float(warm.handle_residuals[3]) / diagonal,
+                         reference_miss=float(reference.handle_residuals[3]) / diagonal,
+                         cold_seconds=cold_seconds, reference_seconds=reference_seconds,
+                         reference_steps=reference.iterations))
+    return dict(rows=rows)
+
+
+def live_table(result):
+    return table(
+        "Live re-solve (bridge/live.py; 10k-tet bar, reduced RS, 100 frames x 2 handles, tip "
+        "target moved by 1 % of the diagonal, warm start, no continuation; target < 33 ms)",
+        result.get("rows", [result]),
+        [("modes", ("modes", "{}")), ("GN steps", ("gn_steps", "{}")),
+         ("re-solve ms", ("ms", "{:.1f}")), ("J / J full", ("objective_ratio", "{:.6f}")),
+         ("tip miss / diag", ("tip_miss", "{:.1e}")),
+         ("full solve miss / diag", ("reference_miss", "{:.1e}")),
+         ("full solve s", ("reference_seconds", "{:.2f}")),
+         ("full GN steps", ("reference_steps", "{}"))])
+
+
+CASES["live"] = case_live
+
+
 DYNAMICS_MODES = ("10", "20", "40")
 
 
@@ -754,6 +844,9 @@ def main():
     results["spacetime"] = spacetime_rows(args.quick)
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + spacetime_table(results["spacetime"])
+    results["live"] = run_child("live", "20")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + live_table(results["live"])
     results["dynamics"] = [run_child("dynamics", m)
                            for m in (("20",) if args.quick else DYNAMICS_MODES)]
     results["dynamics_reference"] = run_child("dynamics_reference", "10k")

@@ -3,7 +3,7 @@ panel's cached fingerprints when what they describe may have changed."""
 import bpy
 from bpy.app.handlers import persistent
 
-from . import bodies
+from . import bodies, live
 
 
 @persistent
@@ -27,12 +27,25 @@ def _forget_all_fingerprints(*_args):
     bodies.forget_fingerprints(None)
 
 
+@persistent
+def _live_resolve(scene, depsgraph):
+    # A live body re-solves when its handles' Empties or keyframes change (bridge/live.py).
+    live.on_depsgraph_update(scene, depsgraph)
+
+
+@persistent
+def _live_frame(scene, *_args):
+    live.on_frame_change(scene)
+
+
 _ALL_FINGERPRINTS_GONE = ("load_post", "undo_post", "redo_post")
 
 
 def register():
     bpy.app.handlers.save_post.append(_move_cache_after_save)
     bpy.app.handlers.depsgraph_update_post.append(_forget_fingerprints)
+    bpy.app.handlers.depsgraph_update_post.append(_live_resolve)
+    bpy.app.handlers.frame_change_post.append(_live_frame)
     for name in _ALL_FINGERPRINTS_GONE:
         getattr(bpy.app.handlers, name).append(_forget_all_fingerprints)
 
@@ -42,6 +55,11 @@ def unregister():
         bpy.app.handlers.save_post.remove(_move_cache_after_save)
     if _forget_fingerprints in bpy.app.handlers.depsgraph_update_post:
         bpy.app.handlers.depsgraph_update_post.remove(_forget_fingerprints)
+    live.cancel()
+    for name, handler in (("depsgraph_update_post", _live_resolve),
+                          ("frame_change_post", _live_frame)):
+        if handler in getattr(bpy.app.handlers, name):
+            getattr(bpy.app.handlers, name).remove(handler)
     for name in _ALL_FINGERPRINTS_GONE:
         handlers = getattr(bpy.app.handlers, name)
         if _forget_all_fingerprints in handlers:

@@ -3,11 +3,19 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from . import preview, tet_overlay
+from . import live, preview, tet_overlay
 
 
 def _preview_changed(self, context):
     preview.refresh(self.id_data)
+
+
+def _live_changed(self, context):
+    # On: solve once now (via the timer); off: drop the live preview so the mesh is as before.
+    if self.live:
+        live.request(self.id_data.name)
+    else:
+        live.stop(self.id_data)
 
 
 def _show_tets_changed(self, context):
@@ -190,6 +198,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     damping_stiffness: FloatProperty(
         name="Stiffness Damping", default=0.002, min=0.0, soft_max=0.1, precision=4,
         description="Rayleigh damping β (s): damps fast modes more than slow ones")
+    live: BoolProperty(
+        name="Live", default=False, update=_live_changed,
+        description="Re-solve whenever a handle's Empty or its keyframes change and show the "
+                    "pose at the current frame as the preview (never the bake; Solve and Bake "
+                    "writes that)")
     iterations: IntProperty(name="Iterations", default=20, min=1, soft_max=200,
                             description="Largest number of solver iterations")
     use_take: BoolProperty(name="Edit the Take", default=False,

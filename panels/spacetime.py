@@ -1,7 +1,7 @@
 """Space-time editing: handles, the solve and its bake."""
 import bpy
 
-from ..bridge import bake, spacetime_inputs
+from ..bridge import bake, live, spacetime_inputs
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
 
 
@@ -55,7 +55,12 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             layout.prop(settings, "take_weight")
 
         layout.use_property_split = False
-        layout.operator("rs_elastic.solve_spacetime", icon='PLAY')
+        row = layout.row(align=True)
+        row.prop(settings, "live", toggle=True, icon='REC')
+        row.operator("rs_elastic.solve_spacetime", icon='PLAY')
+        live_status = live.status(obj) if settings.live else None
+        if live_status is not None:
+            layout.label(text=live_status, icon='PREVIEW_RANGE')
         draw_bake_buttons(layout)
         status = spacetime_inputs.LAST_STATUS.get(obj.name)
         if status is not None:
