@@ -209,6 +209,34 @@ SPACETIME_MODES = ("10", "20", "40")
 SPACETIME_FRAMES = (100, 200, 400)
 
 
+def _edit_bar(num_modes, fractions):
+    """The 10k-tet pinned 4:1:1 bar of the space-time cases (E = 1e6 Pa, nu = 0.45,
+    1100 kg/m^3) with its reduced RS deformer, and handles at the cross-sections nearest the
+    given fractions of its length. Returns (X, body, deformer, stations (k,), handles, arc):
+    arc(s, angle) is the target of station s on the circular arc of that total angle."""
+    import numpy as np
+    from solver import fem, meshgen, modes, reduced, rs, spacetime
+    n, length = BAR_SIZES["10k"], 4.0
+    X, T = meshgen.box_tet_mesh((length, 1.0, 1.0), (4 * n, n, n))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1100.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, int(num_modes),
+                              pinned)
+    recon = rs.PoissonReconstruction(X, T, pinned)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
+    planes = np.unique(X[:, 0])
+    stations = planes[np.searchsorted(planes, length * np.asarray(fractions) - 1e-9)]
+    handles = [spacetime.handle_geometry(X, deformer.basis,
+                                         np.flatnonzero(np.abs(X[:, 0] - s) < 1e-9))
+               for s in stations]
+
+    def arc(s, angle):
+        return np.array([np.sin(angle * s / length), 0.0, np.cos(angle * s / length) - 1.0]
+                        ) * length / angle + [0.0, 0.5, 0.5]
+
+    return X, body, deformer, stations, handles, arc
+
+
 def case_spacetime(arg):
     """Space-time solves on the 10k-tet pinned bar with reduced RS; arg "MODES[:F1,F2,...]".
 
@@ -219,29 +247,12 @@ def case_spacetime(arg):
     material optimisation (default iterations).
     """
     import numpy as np
-    from solver import fem, meshgen, modes, reduced, rs, spacetime
+    from solver import spacetime
     num_modes, _, frame_text = arg.partition(":")
     frame_counts = [int(f) for f in frame_text.split(",")] if frame_text else SPACETIME_FRAMES
-    n, length = BAR_SIZES["10k"], 4.0
-    X, T = meshgen.box_tet_mesh((length, 1.0, 1.0), (4 * n, n, n))
-    pinned = np.flatnonzero(X[:, 0] < 1e-9)
     start = time.perf_counter()
-    masses = fem.lumped_masses(X, T, 1100.0)
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, int(num_modes),
-                              pinned)
-    recon = rs.PoissonReconstruction(X, T, pinned)
-    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
+    X, body, deformer, stations, handles, arc = _edit_bar(num_modes, np.arange(1, 6) / 5.0)
     setup = time.perf_counter() - start
-    planes = np.unique(X[:, 0])
-    stations = planes[np.searchsorted(planes, length * np.arange(1, 6) / 5.0 - 1e-9)]
-    handles = [spacetime.handle_geometry(X, deformer.basis,
-                                         np.flatnonzero(np.abs(X[:, 0] - s) < 1e-9))
-               for s in stations]
-
-    def arc(s, angle):
-        return np.array([np.sin(angle * s / length), 0.0, np.cos(angle * s / length) - 1.0]
-                        ) * length / angle + [0.0, 0.5, 0.5]
-
     diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
     h = 1.0 / 24.0
     damping = spacetime.rayleigh_damping(body.eigenvalues, 0.1, 0.002)
@@ -309,25 +320,9 @@ def case_live(arg, frames=100, repeats=7):
     Quality: its objective against a full cold solve of the moved edit, and the tip's miss.
     """
     import numpy as np
-    from solver import fem, meshgen, modes, reduced, rs, spacetime
+    from solver import spacetime
     num_modes = int(arg)
-    n, length = BAR_SIZES["10k"], 4.0
-    X, T = meshgen.box_tet_mesh((length, 1.0, 1.0), (4 * n, n, n))
-    pinned = np.flatnonzero(X[:, 0] < 1e-9)
-    masses = fem.lumped_masses(X, T, 1100.0)
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
-    recon = rs.PoissonReconstruction(X, T, pinned)
-    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
-    planes = np.unique(X[:, 0])
-    stations = planes[np.searchsorted(planes, length * np.array([0.6, 1.0]) - 1e-9)]
-    handles = [spacetime.handle_geometry(X, deformer.basis,
-                                         np.flatnonzero(np.abs(X[:, 0] - s) < 1e-9))
-               for s in stations]
-
-    def arc(s, angle):
-        return np.array([np.sin(angle * s / length), 0.0, np.cos(angle * s / length) - 1.0]
-                        ) * length / angle + [0.0, 0.5, 0.5]
-
+    X, body, deformer, stations, handles, arc = _edit_bar(num_modes, [0.6, 1.0])
     diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
     h = 1.0 / 24.0
     damping = spacetime.rayleigh_damping(body.eigenvalues, 0.1, 0.002)

@@ -77,7 +77,7 @@ halves (a shorter predictor stays feasible).
 
 import numpy as np
 
-from . import rs
+from . import materials, rs
 
 J_HAT = 0.6          # volume ratio below which the barrier acts (module docstring)
 BARRIER_SCALE = 100.0   # kappa / K, K the material's small-strain bulk modulus
@@ -218,7 +218,7 @@ def _clamp_psd(H):
     return (vectors * np.maximum(values, 0.0)[:, None, :]) @ np.swapaxes(vectors, 1, 2)
 
 
-class BarrierPotential:
+class BarrierPotential(materials.PotentialAccessors):
     """A reduced elastic potential plus a ``VolumeBarrier``, with the interface ``dynamics``
     uses from ``materials.ReducedPotential``: evaluate(s, order), energy / gradient / hessian,
     rest_hessian, num_coords; other attributes (material, tets, strain_modes, weights, ...)
@@ -246,15 +246,6 @@ class BarrierPotential:
         b_energy, b_grad, b_hess = self.barrier.evaluate(s, order)
         return (energy + b_energy, None if grad is None else grad + b_grad,
                 None if hess is None else hess + b_hess)
-
-    def energy(self, s):
-        return self.evaluate(s, 0)[0]
-
-    def gradient(self, s):
-        return self.evaluate(s, 1)[1]
-
-    def hessian(self, s):
-        return self.evaluate(s, 2)[2]
 
 
 def with_barrier(potential, modal_rs, volumes, j_hat=J_HAT):

@@ -214,7 +214,21 @@ def make_material(kind, mu, lam, fung_stiffening=10.0):
 # ---------------------------------------------------------------------------------------------
 # Reduced potential
 
-class ReducedPotential:
+class PotentialAccessors:
+    """energy, gradient and Hessian of anything with ``evaluate(s, order)`` -> (value, grad,
+    hess): the reduced potential, and the volume barrier that wraps it (``inversion``)."""
+
+    def energy(self, s):
+        return self.evaluate(s, 0)[0]
+
+    def gradient(self, s):
+        return self.evaluate(s, 1)[1]
+
+    def hessian(self, s):
+        return self.evaluate(s, 2)[2]
+
+
+class ReducedPotential(PotentialAccessors):
     """V(s) = sum_c weights_c psi(U_c s): the elastic energy [J] of modal coordinates s (m,).
 
     material: ``Linear``, ``StVK`` or ``Fung``; strain_modes U (C, 6, m): strain per unit s at
@@ -300,14 +314,6 @@ class ReducedPotential:
         grad = (dpsi * self.weights[:, None]).reshape(-1) @ self._flat
         return energy, grad, (self._hessian_sum(d2psi) if order >= 2 else None)
 
-    def energy(self, s):
-        return self.evaluate(s, 0)[0]
-
-    def gradient(self, s):
-        return self.evaluate(s, 1)[1]
-
-    def hessian(self, s):
-        return self.evaluate(s, 2)[2]
 
 
 # ---------------------------------------------------------------------------------------------
