@@ -720,7 +720,8 @@ def _apply_rows(rows, q):
 # Reduced RS cubature
 
 def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
-                              candidates=400, projection=None, progress=None):
+                              candidates=400, projection=None, picks_per_block=None,
+                              progress=None):
     """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``ReducedRS`` uses it.
 
     ReducedRS integrates the linear part of the RS map exactly, so the cubature fits the
@@ -734,6 +735,9 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     ``cubature.training_poses``); projection: an existing ``ReducedProjection`` for B.
     Columns are computed only for the ``candidates`` random tets scored at each pick
     (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
+    picks_per_block: see ``cubature.greedy_nnls``; None takes max(1, max_tets // 64), so a
+    large cubature (hundreds of tets, for a basis that grows with the mode count) does not
+    pay for a fresh block of candidate columns at every pick.
     progress(fraction, message): optional, see ``greedy_nnls``.
 
     Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
@@ -756,7 +760,8 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
     tets, weights, history = cubature.greedy_nnls(
         columns, target, tol=tol, max_picks=max_tets, candidates=candidates, rng=rng,
-        num_columns=len(T), progress=inner)
+        num_columns=len(T), progress=inner,
+        picks_per_block=max(1, int(max_tets) // 64) if picks_per_block is None else picks_per_block)
     info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
     return tets, weights, info
 
@@ -789,12 +794,15 @@ def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
 # Everything at once
 
 MEMORY_BUDGET = 256 * 2 ** 20   # bytes allowed for the basis B (3N x rB float64)
+SMALL_BASIS_CAP = 160           # rB for small mode counts (pairs + snapshot directions)
 
 
 def default_basis_size(num_modes, num_nodes=None, num_tets=None, memory_budget=MEMORY_BUDGET):
-    """Default rB for m modes: m + all m(m+1)/2 pairs + as many snapshot directions.
+    """Default rB for m modes: the modes and all their m(m+1)/2 products, O(m^2) as in [P15].
 
-    O(m^2) as in [P15] (m = 10: 120, m = 20: 440, m = 40: 1680), no fixed cap. With
+    Small mode counts get the pairs plus as many snapshot directions, up to
+    ``SMALL_BASIS_CAP`` = 160 (m = 10: 120, m = 14: 160); from m = 17 the pairs alone exceed
+    that and the size is m + m(m+1)/2 (m = 20: 230, m = 40: 860), with no fixed cap. With
     ``num_nodes`` N it is bounded by the memory budget (B takes 24 N rB bytes: the default
     256 MiB allows rB = 11 M / N, e.g. 1100 columns at N = 10,000 nodes) and by the 3N DOFs
     (a basis cannot hold more independent columns). The cubature training matrix
@@ -807,7 +815,7 @@ def default_basis_size(num_modes, num_nodes=None, num_tets=None, memory_budget=M
     tets 0.67 %). The modes are always kept (rB >= m).
     """
     m = int(num_modes)
-    size = m + m * (m + 1)
+    size = max(min(m + m * (m + 1), SMALL_BASIS_CAP), m + m * (m + 1) // 2)
     if num_nodes is not None:
         size = min(size, max(m, int(memory_budget) // (24 * int(num_nodes))), 3 * int(num_nodes))
     if num_tets is not None:

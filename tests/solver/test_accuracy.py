@@ -50,7 +50,9 @@ def relative_error(bar, z):
 
 def test_default_sizes_grow_with_the_mode_count():
     assert reduced.default_basis_size(10) == 120
-    assert reduced.default_basis_size(40) == 40 + 40 * 41          # O(m^2), no fixed cap
+    assert reduced.default_basis_size(14) == 160
+    assert reduced.default_basis_size(20) == 20 + 20 * 21 // 2    # O(m^2): the pairs
+    assert reduced.default_basis_size(40) == 40 + 40 * 41 // 2    # no fixed cap
     # Bounded by memory (24 N rB bytes <= budget), the DOFs and the tets.
     budget = reduced.MEMORY_BUDGET
     assert reduced.default_basis_size(40, num_nodes=10 ** 5) == budget // (24 * 10 ** 5)
