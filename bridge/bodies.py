@@ -569,6 +569,16 @@ def _save_cached(inputs, stage, key, value, parent, job):
         job.warn(f"Could not write the cache {path}: {exc}")
 
 
+def _cubature_size(inputs, X, T, linear_modes):
+    """Cubature tets: the user's setting, raised to ``reduced.default_cubature_size`` of the
+    automatic basis when Basis Size is 0 (automatic), since that basis grows as O(modes^2)."""
+    if inputs.basis_size:
+        return inputs.cubature_tets
+    automatic = reduced.default_basis_size(linear_modes.vectors.shape[1], num_nodes=len(X),
+                                           num_tets=len(T))
+    return max(inputs.cubature_tets, reduced.default_cubature_size(automatic, num_tets=len(T)))
+
+
 def _cached_stage(inputs, stage, key, parent, compute, job, accept=lambda value: True):
     """A stage's value: from memory, else its valid cache file, else compute() (then saved).
     `parent` is the digest of what it is computed from; `accept` rejects a value on doubt."""
@@ -667,7 +677,8 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.
         masses = fem.lumped_masses(X, T, inputs.density)
         deformer, _ = reduced.prepare_reduced_rs(
             X, T, masses, linear_modes.vectors, linear_modes.eigenvalues, recon,
-            max_size=inputs.basis_size or None, max_tets=inputs.cubature_tets,
+            max_size=inputs.basis_size or None, max_tets=_cubature_size(inputs, X, T,
+                                                                         linear_modes),
             tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
             progress=lambda f, message: job.step(0.72 + (end - 0.72) * f, f"Reduced RS: {message}"))
         return deformer

@@ -3,7 +3,7 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import fem, rs, spacetime
+from ..solver import accuracy, fem, rs, spacetime
 from . import bake, bodies, constraints, rs_tools, scene
 from .scene import InputError
 
@@ -203,4 +203,47 @@ def solve(job_inputs, job):
     displacement = q @ job_inputs.tools.surface_basis.T                    # (F, 3n)
     poses = job_inputs.rest[None] + displacement.reshape(len(q), -1, 3)
     bake.check_poses(job_inputs.object_name, job_inputs.rest, poses)
+    job_inputs.warnings.extend(post_solve_checks(job_inputs, result))
     return result, poses
+
+
+HANDLE_REGION = 0.1      # handle region: tets within this fraction of the diagonal of it
+STRETCH_REPORTED = 0.05  # principal stretch (fraction) from which a handle's stretch is reported
+
+
+def post_solve_checks(job_inputs, result, frames=4):
+    """Sentences for the user after a solve (worker thread, no bpy): is the reduced model off
+    (``accuracy.reduced_error`` on ``frames`` telling frames, against full RS; warned above
+    ``accuracy.REDUCED_ERROR_TOLERANCE`` = 1 % of the body's diagonal), and which handles ask
+    the body to stretch (largest principal stretch near each handle's rest centroid over its
+    constrained frames, reported from ``STRETCH_REPORTED`` = 5 %)."""
+    tools, Z = job_inputs.tools, result.inputs
+    modal_rs = tools.modal_rs[:, :, :Z.shape[1]]
+    out = []
+    if getattr(tools.deformer, "basis", None) is not None:
+        picked = accuracy.telling_frames(modal_rs, Z, frames)
+        errors = accuracy.reduced_error(tools.deformer, tools.reconstruction, modal_rs,
+                                        Z[picked], tools.nodes)
+        worst = int(np.argmax(errors))
+        if errors[worst] > accuracy.REDUCED_ERROR_TOLERANCE:
+            out.append(f"The reduced model is off full RS by {100 * errors[worst]:.1f} % of the "
+                       f"body's size on frame {job_inputs.frames[picked[worst]]}: the edit "
+                       "left its training range; more modes or a larger Basis Size / Cubature "
+                       "Tets would follow it better")
+    handles = job_inputs.problem.handles
+    if handles is None:
+        return out
+    diagonal = float(np.linalg.norm(np.ptp(tools.nodes, axis=0)))
+    centres = tools.nodes[tools.tets].mean(axis=1)                       # (E, 3)
+    for index, rows in job_inputs.track_slices:
+        centre = handles.rest[rows].mean(axis=0)
+        region = np.flatnonzero(np.linalg.norm(centres - centre, axis=1)
+                                < HANDLE_REGION * diagonal)
+        if len(region) == 0:
+            region = np.array([int(np.argmin(np.linalg.norm(centres - centre, axis=1)))])
+        stretch = accuracy.region_stretch(modal_rs, Z[np.unique(handles.frames[rows])], region)
+        if stretch > STRETCH_REPORTED:
+            residual = float(result.handle_residuals[rows].max())
+            out.append(f"Handle {index + 1} stretches the body by {100 * stretch:.0f} % "
+                       f"(residual {residual:.3g} m): its targets ask for stretch, not bending")
+    return out

@@ -97,7 +97,7 @@ def pose_extremes(modal_rs, Z, chunk=16):
 # Greedy NNLS
 
 def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=None,
-                num_columns=None, refit_every=4, progress=None):
+                num_columns=None, refit_every=4, picks_per_block=1, progress=None):
     """Greedy sparse non-negative fit target ~ A[:, S] w, w >= 0 (An et al. 2008).
 
     columns: the matrix A (n, K), or a callable ``columns(indices) -> (n, len(indices))`` that
@@ -106,6 +106,10 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
     candidates: size of the random subset of unpicked columns scored per pick (None: all).
     rng: ``np.random.Generator`` (default seeded 0). progress: optional callable(fraction,
       message) called before each pick; an exception raised in it aborts and propagates.
+    picks_per_block: picks taken from one computed block of candidate columns before a new
+      random block is drawn (re-scored against the updated residual after each pick). Columns
+      are the expensive part when they are computed on demand, so a large fit (hundreds of
+      picks) takes several per block; 1 draws a fresh block for every pick.
 
     Each pick takes the candidate with the largest cosine to the residual, then re-fits the
     weights (module docstring): every ``refit_every`` picks by ``scipy.optimize.nnls`` on all
@@ -139,21 +143,38 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
         pool = np.flatnonzero(available)
         if candidates is not None and len(pool) > candidates:
             pool = rng.choice(pool, size=int(candidates), replace=False)
+        whole = len(pool) == available.sum()
         block = np.asarray(get(pool), dtype=np.float64)               # (n, |pool|)
-        norms = np.sqrt(np.einsum("ij,ij->j", block, block))
-        score = (fit.residual @ block) / np.maximum(norms, 1e-300)
-        best = int(np.argmax(score))
-        if score[best] <= 0.0:                   # no candidate here can lower the residual
-            misses += 1
-            if len(pool) == available.sum() or misses >= 5:
-                break
+        if _picks_from_block(fit, block, pool, available, picks_per_block, tol, refit_every,
+                             history):
+            misses = 0
             continue
-        misses = 0
+        misses += 1                              # no candidate here can lower the residual
+        if whole or misses >= 5:
+            break
+    keep = fit.weights > 0.0
+    return fit.indices[keep], fit.weights[keep], history
+
+
+def _picks_from_block(fit, block, pool, available, count, tol, refit_every, history):
+    """Up to ``count`` greedy picks from one block (n, |pool|) of candidate columns, each the
+    unpicked column with the largest cosine to the current residual; appends the relative
+    residual after each accepted pick to ``history``. Returns whether anything was picked."""
+    norms = np.maximum(np.sqrt(np.einsum("ij,ij->j", block, block)), 1e-300)
+    picked = False
+    for _ in range(max(int(count), 1)):
+        score = (fit.residual @ block) / norms
+        score[~available[pool]] = -np.inf
+        best = int(np.argmax(score))
+        if not score[best] > 0.0:
+            break
+        picked = True
         available[pool[best]] = False
         if fit.add(pool[best], block[:, best]):
             history.append(fit.refit(full=fit.size % max(int(refit_every), 1) == 0))
-    keep = fit.weights > 0.0
-    return fit.indices[keep], fit.weights[keep], history
+        if history[-1] <= tol or fit.size >= fit.capacity:
+            break
+    return picked
 
 
 class _IncrementalNNLS:
@@ -199,7 +220,10 @@ class _IncrementalNNLS:
         if not full:
             weights = np.zeros(k)
             passive = np.append(np.flatnonzero(self.weights > 0.0), k - 1)
-            weights[passive] = _least_squares(R[:, passive], Qb)
+            if len(passive) == k:                # all columns: R is square upper triangular
+                weights = scipy.linalg.solve_triangular(R, Qb)
+            else:
+                weights[passive] = _least_squares(R[:, passive], Qb)
             if np.any(weights[passive] <= 0.0):
                 weights = None
         if weights is None:

@@ -720,7 +720,8 @@ def _apply_rows(rows, q):
 # Reduced RS cubature
 
 def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
-                              candidates=400, projection=None, progress=None):
+                              candidates=400, projection=None, picks_per_block=None,
+                              progress=None):
     """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``ReducedRS`` uses it.
 
     ReducedRS integrates the linear part of the RS map exactly, so the cubature fits the
@@ -734,6 +735,9 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     ``cubature.training_poses``); projection: an existing ``ReducedProjection`` for B.
     Columns are computed only for the ``candidates`` random tets scored at each pick
     (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
+    picks_per_block: see ``cubature.greedy_nnls``; None takes max(1, max_tets // 64), so a
+    large cubature (hundreds of tets, for a basis that grows with the mode count) does not
+    pay for a fresh block of candidate columns at every pick.
     progress(fraction, message): optional, see ``greedy_nnls``.
 
     Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
@@ -756,7 +760,8 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
     tets, weights, history = cubature.greedy_nnls(
         columns, target, tol=tol, max_picks=max_tets, candidates=candidates, rng=rng,
-        num_columns=len(T), progress=inner)
+        num_columns=len(T), progress=inner,
+        picks_per_block=max(1, int(max_tets) // 64) if picks_per_block is None else picks_per_block)
     info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
     return tets, weights, info
 
@@ -788,25 +793,60 @@ def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
 # ---------------------------------------------------------------------------------------------
 # Everything at once
 
-def default_basis_size(num_modes, cap=160):
-    """Default rB for m modes: m + all m(m+1)/2 pairs + as many snapshot directions, <= cap.
+MEMORY_BUDGET = 256 * 2 ** 20   # bytes allowed for the basis B (3N x rB float64)
+SMALL_BASIS_CAP = 160           # rB for small mode counts (pairs + snapshot directions)
 
-    m = 10 gives 120, m >= 14 gives the cap. See ``prepare_reduced_rs`` for measurements.
+
+def default_basis_size(num_modes, num_nodes=None, num_tets=None, memory_budget=MEMORY_BUDGET):
+    """Default rB for m modes: the modes and all their m(m+1)/2 products, O(m^2) as in [P15].
+
+    Small mode counts get the pairs plus as many snapshot directions, up to
+    ``SMALL_BASIS_CAP`` = 160 (m = 10: 120, m = 14: 160); from m = 17 the pairs alone exceed
+    that and the size is m + m(m+1)/2 (m = 20: 230, m = 40: 860), with no fixed cap. With
+    ``num_nodes`` N it is bounded by the memory budget (B takes 24 N rB bytes: the default
+    256 MiB allows rB = 11 M / N, e.g. 1100 columns at N = 10,000 nodes) and by the 3N DOFs
+    (a basis cannot hold more independent columns). The cubature training matrix
+    (poses x rB x candidates doubles, 80 x rB x 400 x 8 bytes = 256 kB per column) is the
+    other cost that grows with rB; evaluation cost depends on the cubature size, not on rB.
+    With ``num_tets`` E it is also bounded by 3 E / 8: the cubature (``default_cubature_size``)
+    picks about 1.25 rB of the E tets, and a basis near the mesh's own DOF count is fitted
+    exactly but not by a cubature (measured: pinned bar, 648 tets, 40 modes, rB = 501 with
+    150 tets left 14 % at a 180 deg bend; rB = 216 with 270 tets 1.05 %, rB = 240 with 300
+    tets 0.67 %). The modes are always kept (rB >= m).
     """
     m = int(num_modes)
-    return min(int(cap), m + m * (m + 1))
+    size = max(min(m + m * (m + 1), SMALL_BASIS_CAP), m + m * (m + 1) // 2)
+    if num_nodes is not None:
+        size = min(size, max(m, int(memory_budget) // (24 * int(num_nodes))), 3 * int(num_nodes))
+    if num_tets is not None:
+        size = min(size, max(m, 3 * int(num_tets) // 8))
+    return size
+
+
+def default_cubature_size(basis_size, num_tets=None):
+    """Default cubature tet count for a basis of rB columns: max(150, 1.25 rB), <= E.
+
+    The fit has rB equations per pose; fewer tets than columns leave part of the reduced
+    space unfitted (see ``default_basis_size`` for measurements). Training time grows about
+    as rB x tets (tens of seconds at rB = 240 on a 648-tet bar).
+    """
+    size = max(150, int(round(1.25 * int(basis_size))))
+    return size if num_tets is None else min(size, int(num_tets))
 
 
 def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_size=None,
-                       order=3, snapshot_size=None, num_snapshots=200, max_tets=150, tol=2e-3,
-                       num_poses=80, candidates=400, seed=0, progress=None):
+                       order=3, snapshot_size=None, num_snapshots=200, max_tets=None, tol=2e-3,
+                       num_poses=80, candidates=400, seed=0, max_rotation=np.pi, progress=None):
     """Build a ``ReducedRS`` for modes W (3N, m): returns (deformer, info).
 
     Steps (progress fractions in brackets): training poses (``cubature.training_poses``, up
-    to 120 deg); full RS snapshots of ``num_snapshots`` of them [0, 0.2]; the basis
+    to ``max_rotation``, default 180 deg [rad]: edits reach half turns, and off the training
+    range the error grows fast: 40 modes, 180 deg bend, 120 deg training and rB = 160 left
+    2.2 % of the diagonal); full RS snapshots of ``num_snapshots`` of them [0, 0.2]; the basis
     (``second_order_basis`` with snapshot enrichment, ``max_size`` columns) [0.2, 0.5]; the
     cubature on ``num_poses`` other poses (``train_reduced_rs_cubature``) [0.5, 1].
-    max_size None: ``default_basis_size(m)``. Measured on a pinned 4:1:1 bar with 20 modes and
+    max_size None: ``default_basis_size`` (O(m^2), memory and mesh bounded); max_tets None:
+    ``default_cubature_size(max_size)``. The figures below predate the O(m^2) rule. Measured on a pinned 4:1:1 bar with 20 modes and
     held-out poses up to 90 deg (strain <= 100 %): rB = 120 leaves up to about 1 % of the
     bounding-box diagonal, rB = 160 about 0.75 %; 150 cubature tets add little to that (60
     tets: about 2 %). With 10 modes rB = 120 is plenty (0.3 % before cubature), and a larger
@@ -823,7 +863,10 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
         modal_rs = rs.linear_rs(rs.rs_operator(X, T), W)
     rng = np.random.default_rng(seed)
     num_modes = modal_rs.shape[2]
-    max_size = default_basis_size(num_modes) if max_size is None else max_size
+    if max_size is None:
+        max_size = default_basis_size(num_modes, num_nodes=len(X), num_tets=len(T))
+    if max_tets is None:
+        max_tets = default_cubature_size(max_size, num_tets=len(T))
 
     def stage(lo, hi):
         return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
@@ -831,7 +874,7 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     seconds = {}
     start = time.perf_counter()
     snapshot_poses = cubature.training_poses(num_modes, eigenvalues, num_snapshots, rng,
-                                             modal_rs=modal_rs)
+                                             max_rotation=max_rotation, modal_rs=modal_rs)
     snapshots = rs_snapshots(modal_rs, recon, snapshot_poses, stage(0.0, 0.2))
     seconds["snapshots"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -841,7 +884,8 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     del snapshots
     seconds["basis"] = time.perf_counter() - start
     start = time.perf_counter()
-    poses = cubature.training_poses(num_modes, eigenvalues, num_poses, rng, modal_rs=modal_rs)
+    poses = cubature.training_poses(num_modes, eigenvalues, num_poses, rng,
+                                    max_rotation=max_rotation, modal_rs=modal_rs)
     tets, weights, fit = train_reduced_rs_cubature(
         X, T, modal_rs, B, recon, poses, max_tets=max_tets, tol=tol, rng=rng,
         candidates=candidates, progress=stage(0.5, 1.0))
