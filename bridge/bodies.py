@@ -103,6 +103,10 @@ def _modes_from_arrays(a):
                              pinned_nodes=a["pinned_nodes"].astype(np.int64))
 
 
+# Version of the automatic basis and cubature sizing and training range (solver.reduced): a
+# reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
+REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
+
 # What a stage's file must hold; sizes with the same name must agree (see cache.validate).
 _SCHEMAS = {
     "tets": {"nodes": ("f", ("N", 3)), "tets": ("iu", ("E", 4)), "phi_data": ("f", ("nnz",)),
@@ -426,8 +430,8 @@ class BodyInputs:
                                  self.density, self.num_modes)
 
     def reduced_key(self, modes_digest):
-        return cache.content_key("reduced", modes_digest, self.basis_size, self.cubature_tets,
-                                 self.cubature_tolerance, self.training_poses)
+        return cache.content_key("reduced", REDUCED_RULES, modes_digest, self.basis_size,
+                                 self.cubature_tets, self.cubature_tolerance, self.training_poses)
 
 
 @dataclasses.dataclass

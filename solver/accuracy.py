@@ -1,11 +1,13 @@
-"""After a solve: how far the reduced model is from full RS, and how much the body stretches.
+"""After a solve: how far the reduced model is from full RS, and which targets demand stretch.
 
-Two questions the tool must answer when a big edit looks wrong (issue 12): was the reduced RS
-model off its training range (``reduced_error``: reduced positions against the full RS
-reconstruction ``rs.PoissonReconstruction`` of the same RS coordinates), or did the targets ask
-the body to stretch (``region_stretch``: the largest principal stretch the RS coordinates carry
-near a handle)? Both are measured on a few frames (``telling_frames``) since a full RS
-reconstruction costs one Poisson solve per frame.
+Two questions the tool must answer when a big edit looks wrong (issue 12). Was the reduced RS
+model off its training range? ``reduced_error`` compares reduced positions with the full RS
+reconstruction (``rs.PoissonReconstruction``) of the same RS coordinates, on a few frames
+(``telling_frames``), since each costs a Poisson solve. Or did the targets ask the body to
+stretch? ``target_stretch``: bending keeps the length of every path through the body, so a
+handle keyed farther from the pins, or from another handle, than the shortest path at rest can
+only be met by stretching. (The solved RS strain is no answer: a cow bent at constant volume
+carried 39 % strain in a few tets.)
 
 Shapes and units: modal_rs (E, 9, m) linear RS coordinates per unit deformer input (rows
 omega (3) [rad], then strain eps (6: xx, xy, xz, yy, yz, zz)); Z (F, m) deformer inputs per frame;
@@ -13,6 +15,8 @@ X (N, 3) tet nodes [m]; T (E, 4).
 """
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 
 from . import cubature, rs
 
@@ -49,31 +53,58 @@ def reduced_error(deformer, recon, modal_rs, Z, X):
     return out
 
 
-def principal_stretches(rs_coordinates):
-    """(E, 3) ascending eigenvalues of the strain eps of RS coordinates (E, 9).
+def edge_graph(X, T):
+    """Sparse (N, N) symmetric graph of the tet mesh's edges weighted by their rest lengths [m]."""
+    T = np.asarray(T, dtype=np.int64)
+    pairs = np.concatenate([T[:, [a, b]] for a in range(4) for b in range(a + 1, 4)])
+    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+    lengths = np.linalg.norm(X[pairs[:, 0]] - X[pairs[:, 1]], axis=1)
+    graph = scipy.sparse.coo_matrix((lengths, (pairs[:, 0], pairs[:, 1])), shape=(len(X),) * 2)
+    return (graph + graph.T).tocsr()
 
-    In RS coordinates the deformation is F = exp([omega]x)(I + eps), so the principal stretches
-    are 1 + these eigenvalues (eps > 0 stretches, < 0 compresses) [dimensionless].
+
+def target_stretch(X, T, pinned, rest_points, frames, targets):
+    """The stretch each handle's targets demand: (H,) fractions (0.2 = 20 %) and (H,) frames.
+
+    X (N, 3), T (E, 4): the rest tet mesh [m]; pinned (P,) pinned node indices (may be empty);
+    rest_points (H, 3): the handles' rest centroids; frames, targets: per handle, its keyed
+    frame indices (c_h,) and target centroids (c_h, 3) [m], in the body's frame.
+
+    Bending and twisting keep the length of every path through the body, so a target farther
+    from a pinned node than the shortest path from that node to the handle at rest, or two
+    handles keyed on one frame farther apart than the path between them, can only be met by
+    stretching the body by at least that ratio. Paths run along tet edges (Dijkstra) from the
+    node nearest each handle, plus the gap to its centroid; they zigzag, so they are longer than
+    the true in-body distance and the demand is an underestimate (a lower bound on the stretch
+    needed). Returns max(ratio) - 1 per handle (negative when nothing is demanded) and the frame
+    where it is largest (-1 for a handle with no frames).
     """
-    y = np.asarray(rs_coordinates, dtype=np.float64)
-    eps = np.einsum("ek,kab->eab", y[:, 3:], rs.STRAIN_BASIS)
-    return np.linalg.eigvalsh(0.5 * (eps + eps.transpose(0, 2, 1)))
+    X = np.asarray(X, dtype=np.float64)
+    rest_points = np.atleast_2d(np.asarray(rest_points, dtype=np.float64))
+    pinned = np.asarray(pinned, dtype=np.int64)
+    nearest = np.array([int(np.argmin(np.linalg.norm(X - c, axis=1))) for c in rest_points])
+    gap = np.linalg.norm(X[nearest] - rest_points, axis=1)                      # (H,)
+    paths = scipy.sparse.csgraph.dijkstra(edge_graph(X, T), indices=nearest) + gap[:, None]
+    demand = np.full(len(rest_points), -np.inf)
+    worst = np.full(len(rest_points), -1, dtype=np.int64)
 
+    def consider(h, ratios, at):
+        if len(ratios) and ratios.max() - 1.0 > demand[h]:
+            k = int(np.argmax(ratios))
+            demand[h], worst[h] = float(ratios[k]) - 1.0, int(at[k])
 
-def region_stretch(modal_rs, Z, tets):
-    """Largest principal stretch - 1 (fraction, 0.2 = 20 %) over frames Z (F, m) and tets (k,).
-
-    Z: the frames to check (e.g. ``telling_frames``); tets: the handle's region
-    (``region_tets``). Negative when the region only compresses.
-    """
-    Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
-    tets = np.asarray(tets, dtype=np.int64)
-    y = np.einsum("ekm,fm->fek", np.asarray(modal_rs)[tets], Z).reshape(-1, 9)
-    return float(principal_stretches(y)[:, -1].max())
-
-
-def region_tets(T, nodes):
-    """Indices of the tets of T (E, 4) touching any node in ``nodes`` (k,) (a handle's region)."""
-    mask = np.zeros(int(np.max(T)) + 1, dtype=bool)
-    mask[np.asarray(nodes, dtype=np.int64)] = True
-    return np.flatnonzero(mask[np.asarray(T)].any(axis=1))
+    for h, (f, t) in enumerate(zip(frames, targets)):
+        f, t = np.asarray(f, dtype=np.int64), np.asarray(t, dtype=np.float64).reshape(-1, 3)
+        if len(pinned):
+            reach = np.maximum(paths[h, pinned], 1e-300)                             # (P,)
+            ratios = np.linalg.norm(t[:, None, :] - X[pinned][None], axis=2) / reach
+            consider(h, ratios.max(axis=1), f)
+        for g in range(len(rest_points)):
+            if g == h:
+                continue
+            common, i, j = np.intersect1d(f, np.asarray(frames[g], dtype=np.int64),
+                                          return_indices=True)
+            reach = max(paths[h, nearest[g]] + gap[g], 1e-300)
+            other = np.asarray(targets[g], dtype=np.float64).reshape(-1, 3)
+            consider(h, np.linalg.norm(t[i] - other[j], axis=1) / reach, common)
+    return demand, worst

@@ -110,36 +110,50 @@ def test_telling_frames_pick_the_largest_rotations():
     np.testing.assert_array_equal(accuracy.telling_frames(modal_rs, Z, count=3), [1, 3])
 
 
-# Stretch near a handle (solver.accuracy.region_stretch) -------------------------------------
+# Stretch the targets demand (solver.accuracy.target_stretch) --------------------------------
 
-def test_a_target_20_percent_beyond_the_length_is_a_20_percent_stretch():
-    """u = 0.2 x e_x: the tip meets a target 20 % beyond the bar's length by stretching."""
+def straight_bar():
+    """4 x 1 x 1 bar, 8 x 2 x 2 cells: node rows run straight along x through (y, z) = (.5, .5)."""
     X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (8, 2, 2))
-    u = np.zeros_like(X)
-    u[:, 0] = 0.2 * X[:, 0]
-    modal_rs = rs.linear_rs(rs.rs_operator(X, T), u.reshape(-1, 1))
-    tip = accuracy.region_tets(T, np.flatnonzero(X[:, 0] > 4.0 - 1e-9))
-    assert accuracy.region_stretch(modal_rs, [[1.0]], tip) == pytest.approx(0.2, abs=1e-12)
+    return X, T, np.flatnonzero(X[:, 0] < 1e-9)
 
 
-def test_a_pure_90_degree_bend_stretches_little():
-    """Slender pinned bar (8:0.2:0.2), first bending mode turned 90 deg at the tip: < 3 %."""
-    X, T = meshgen.box_tet_mesh((8.0, 0.2, 0.2), (20, 1, 1))
-    pinned = np.flatnonzero(X[:, 0] < 1e-9)
-    K = fem.stiffness_matrix(X, T, 1.0e7, 0.45)
-    masses = fem.lumped_masses(X, T, 1000.0)
-    W = modes.linear_modes(K, masses, 1, pinned_nodes=pinned).vectors
-    modal_rs = rs.linear_rs(rs.rs_operator(X, T), W)
-    z = bend(modal_rs, 90.0)
-    tip = accuracy.region_tets(T, np.flatnonzero(X[:, 0] > 8.0 - 1e-9))
-    stretch = accuracy.region_stretch(modal_rs, z[None], tip)
-    print(f"90 deg bend: tip region stretch {100 * stretch:.2f} %")
-    assert abs(stretch) < 0.03
+def test_edge_graph_holds_each_tet_edge_once_with_its_length():
+    X, T = meshgen.box_tet_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    graph = accuracy.edge_graph(X, T)
+    edges = {tuple(sorted((int(t[a]), int(t[b])))) for t in T for a in range(4)
+             for b in range(a + 1, 4)}
+    assert graph.nnz == 2 * len(edges)
+    for i, j in edges:
+        assert graph[i, j] == pytest.approx(np.linalg.norm(X[i] - X[j]), rel=1e-15)
 
 
-def test_principal_stretches_are_the_strain_eigenvalues():
-    rng = np.random.default_rng(3)
-    y = rng.normal(size=(5, 9))
-    eps = np.einsum("ek,kab->eab", y[:, 3:], rs.STRAIN_BASIS)
-    expected = np.sort(np.linalg.eigvals(eps).real, axis=1)
-    np.testing.assert_allclose(accuracy.principal_stretches(y), expected, atol=1e-12)
+def test_a_tip_target_20_percent_beyond_the_length_demands_20_percent():
+    """Pinned bar: the straight edge path from (0, .5, .5) to the tip centroid is 4 m long, so a
+    target at x = 4.8 is 1.2 times as far as any bending reaches: demand 0.2 (exact)."""
+    X, T, pinned = straight_bar()
+    demand, frame = accuracy.target_stretch(X, T, pinned, [[4.0, 0.5, 0.5]], [[3, 7]],
+                                            [[[4.0, 0.5, 0.5], [4.8, 0.5, 0.5]]])
+    assert demand[0] == pytest.approx(0.2, abs=1e-12) and frame[0] == 7
+
+
+def test_a_bent_tip_target_demands_no_stretch():
+    """The tip of the bar turned up 90 deg about the pinned end (an arc of length 4 ends 2.55 m
+    from it): reachable by bending, so the demand is negative."""
+    X, T, pinned = straight_bar()
+    radius = 4.0 / (np.pi / 2)
+    target = [radius, 0.5, 0.5 + radius]
+    demand, _ = accuracy.target_stretch(X, T, pinned, [[4.0, 0.5, 0.5]], [[5]], [[target]])
+    assert demand[0] < 0.0
+
+
+def test_two_handles_of_a_free_body_keyed_apart_demand_stretch_on_their_common_frames():
+    """No pins: the two end handles are 4 m apart by the straight path; keyed 4.4 m apart on
+    frame 2 (both) they demand 10 %; frame 5 keys only one of them and is not compared."""
+    X, T, _ = straight_bar()
+    ends = [[0.0, 0.5, 0.5], [4.0, 0.5, 0.5]]
+    frames = [[2, 5], [2]]
+    targets = [[[0.0, 0.5, 0.5], [-9.0, 0.5, 0.5]], [[4.4, 0.5, 0.5]]]
+    demand, frame = accuracy.target_stretch(X, T, [], ends, frames, targets)
+    np.testing.assert_allclose(demand, [0.1, 0.1], atol=1e-12)
+    assert frame.tolist() == [2, 2]
