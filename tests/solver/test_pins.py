@@ -235,10 +235,11 @@ def test_painted_end_face_pins_the_whole_face_and_nothing_behind_it(box_set):
         added = np.setdiff1d(new, old)
         assert np.all(np.isin(added, boundary_nodes(b.T)))  # never an interior node ...
         assert b.X[added, 0].max() <= 3.0 * envelope        # ... nor one off the face's rim
-        # The old rule: only the few nodes of the tets holding the four corner vertices.
+        # The old rule: only the nodes of the tets holding the four corner vertices (at most
+        # 4 x 4; how many depends on the tet mesh, which fTetWild varies from run to run).
         corners = b.V[end_weights > 0]
         to_corner = np.linalg.norm(b.X[old][:, None] - corners[None], axis=2).min(axis=1)
-        assert 4 <= len(old) <= 12 and to_corner.max() <= 2.5 * EDGE
+        assert 4 <= len(old) <= 16 and to_corner.max() <= 2.5 * EDGE
         assert len(new) >= 3 * len(old)
 
 
