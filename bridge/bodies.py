@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..solver import cache, embed, fem, materials, modes, reduced, rs, tetmesh
-from . import scene
+from . import armature, scene
 from .jobs import Cancelled, Job
 from .scene import InputError
 
@@ -478,6 +478,11 @@ def energy_inputs(obj):
 def rest_surface(obj, depsgraph):
     """The evaluated surface (modifiers applied) without shape keys: bakes and previews are
     shape keys, and the tet mesh must not depend on the frame they play."""
+    with armature.rest_pose(obj, depsgraph):   # a rigged body is prepared in its rest pose
+        return _surface_without_keys(obj, depsgraph)
+
+
+def _surface_without_keys(obj, depsgraph):
     if obj.data.shape_keys is None:
         return scene.evaluated_triangles(obj, depsgraph)
     saved = obj.show_only_shape_key, obj.active_shape_key_index

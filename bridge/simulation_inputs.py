@@ -3,8 +3,8 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import contact, dynamics, fem, inversion, materials
-from . import bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
+from ..solver import contact, dynamics, fem, inversion, materials, rig
+from . import armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -111,6 +111,8 @@ def gather(obj, blender_scene):
     fps = blender_scene.render.fps / blender_scene.render.fps_base
     h = 1.0 / fps
     gravity = scene.scene_gravity(blender_scene)
+    if armature.is_rigged(obj):
+        return _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings)
     motion = object_motion(obj, blender_scene, frames)
     scale = np.array(obj.matrix_world.to_scale())
     if np.abs(scale - 1.0).max() > 1e-6:
@@ -146,6 +148,39 @@ def gather(obj, blender_scene):
         raise InputError(f"'{obj.name}': {exc}") from None
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), free, warnings)
+
+
+def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
+    """The ``rig.RigLoad`` of a rigged body over ``frames``: the bones' motion and gravity felt
+    by its flesh (``bridge.armature`` for the model)."""
+    bones = armature.deform_bones(obj)
+    transforms = armature.bone_transforms(obj, bones, blender_scene, frames)
+    weights = rig.node_weights(tools.embedding, armature.vertex_weights(obj, bones),
+                               tools.nodes, tools.tets)
+    motion = rig.RigMotion((np.array(frames) - frames[0]) * h, transforms)
+    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, gravity=gravity)
+
+
+def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
+    """A rigged body: its flesh simulated in rest space under the rig's loads (no frame motion,
+    gravity through the rig), baked as shape keys the Armature modifier carries."""
+    settings = obj.rs_elastic
+    armature.require_follow_group(obj, len(tools.pinned_nodes) > 0)
+    warnings += armature.warnings_for(obj)
+    if settings.use_collisions:
+        warnings.append(f"'{obj.name}' is rigged: its flesh does not collide (collisions are "
+                        "for unrigged bodies)")
+    masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+    potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
+                                       np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
+    load = rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
+    simulation = dynamics.Simulation(
+        tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
+        mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
+        integrator=settings.integrator.lower(), substeps=settings.substeps, tets=tools.tets,
+        external_force=load.force)
+    return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
+                         scene.base_vertices(obj), False, warnings)
 
 
 def run(job_inputs, job):

@@ -1,6 +1,7 @@
 """Material, pins and modes, and the Prepare operator with its results."""
 import bpy
 
+from ..bridge import armature
 from .body import RSElasticPanel
 
 
@@ -30,7 +31,12 @@ class RS_ELASTIC_PT_material(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "youngs_modulus", text="Young's Modulus (Pa)")
         layout.prop(settings, "poisson_ratio")
         layout.prop(settings, "density", text="Density (kg/m³)")
-        layout.prop_search(settings, "pin_group", obj, "vertex_groups")
+        if armature.is_rigged(obj):       # on a rig the pins are what follows the bones
+            layout.prop_search(settings, "pin_group", obj, "vertex_groups", text="Follow Rig")
+            layout.label(text=f"Rigged by '{armature.armature_modifier(obj).object.name}': "
+                              "the rest is free flesh", icon='ARMATURE_DATA')
+        else:
+            layout.prop_search(settings, "pin_group", obj, "vertex_groups")
 
 
 class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):

@@ -10,6 +10,9 @@
 2. Modes (modes.blend, modes.png): a pinned bar and a free Suzanne at rest, along their first
    mode by the linear preview (which stretches and inflates) and by the RS preview at the same
    amplitude (which bends and keeps its volume).
+3. A rigged creature (rig.blend, rig.png): the same keyed creature (tools/creature.py: it hops
+   and flicks an ear) twice, on the left with its rig alone, on the right with its belly and
+   ears simulated on the rig as free flesh.
 """
 import argparse
 import os
@@ -18,8 +21,10 @@ import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import blender_session  # noqa: E402
+import creature  # noqa: E402
 
 SHEET_FRAMES = (1, 14, 22, 30, 44, 72)
+RIG_FRAMES = (1, 7, 10, 13, 16, 20)
 TILE = (640, 360)
 ROW_GAP = 3.4   # metres between the rows of the modes picture
 
@@ -204,11 +209,11 @@ def showcase(bpy, np, output):
     contact_sheet(bpy, np, frame_label, output / "demo.png")
 
 
-def contact_sheet(bpy, np, frame_label, path):
-    """Render SHEET_FRAMES and tile them 3 × 2 into one picture."""
+def contact_sheet(bpy, np, frame_label, path, frames=SHEET_FRAMES):
+    """Render six frames and tile them 3 × 2 into one picture."""
     scene = bpy.context.scene
     tiles = []
-    for frame in SHEET_FRAMES:
+    for frame in frames:
         scene.frame_set(frame)
         frame_label.data.body = f"frame {frame}"
         scene.render.filepath = str(path.with_name(f".tile_{frame}.png"))
@@ -275,6 +280,30 @@ def modes_picture(bpy, np, output):
     print(f"demo: wrote {output / 'modes.png'}")
 
 
+def rig_picture(bpy, np, output):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(output / "rig.blend"))
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 36
+    scene.render.fps = 24
+    plain, _ = creature.build(bpy, np, "Rig Only", location=(-0.8, 0.0, 0.0))
+    flesh, _ = creature.build(bpy, np, "Elastic Flesh", location=(0.8, 0.0, 0.0))
+    plain.color, flesh.color = (0.6, 0.6, 0.65, 1.0), (0.9, 0.55, 0.3, 1.0)
+    flesh.rs_elastic.pin_group = "Follow Rig"
+    flesh.rs_elastic.youngs_modulus, flesh.rs_elastic.density = 3.0e4, 1000.0
+    flesh.rs_elastic.damping_stiffness = 0.002
+    prepare(bpy, flesh, None, 0.05, num_modes=12)
+    if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
+        sys.exit("demo: simulating the rigged creature failed")
+    for text, x in (("rig only", -0.8), ("RS Elastic flesh", 0.8)):
+        add_label(bpy, text, (x, 0.0, -0.85), 0.16)
+    frame_label = add_label(bpy, "frame", (-1.5, 0.0, 1.45), 0.16, name="Frame Label")
+    stage(bpy, (0.0, -6.0, 0.45), 35, TILE)
+    scene.frame_set(1)
+    bpy.ops.wm.save_mainfile()
+    contact_sheet(bpy, np, frame_label, output / "rig.png", RIG_FRAMES)
+
+
 def main():
     args = parse_args()
     if not args.zip:
@@ -285,8 +314,10 @@ def main():
     import bpy
     import numpy as np
     modes_picture(bpy, np, output)
+    rig_picture(bpy, np, output)
     showcase(bpy, np, output)
-    print(f"demo: wrote {output / 'demo.blend'}, {output / 'demo.png'}, {output / 'modes.png'}")
+    print(f"demo: wrote {output / 'demo.blend'}, {output / 'demo.png'}, {output / 'modes.png'}, "
+          f"{output / 'rig.png'}")
 
 
 if __name__ == "__main__":

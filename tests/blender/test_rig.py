@@ -1,0 +1,118 @@
+"""Rigged bodies end to end (issue 13): a keyed creature (tools/creature.py: body, belly, two ears,
+three bones) simulates on its rig and bakes, on the command line too.
+
+Oracles: the bake is a rest-space deviation the Armature modifier carries, so on the Follow Rig
+vertices it is exactly zero (they are pinned) and the evaluated mesh there is the rig's own
+pose; the free flesh lags the rig (the flicked ear's tip keeps moving forward after its bone
+stops dead, then swings back); the user's actions, bones and keys are untouched
+(``user_fingerprint``); and the whole motion keeps the creature's volume.
+"""
+import numpy as np
+import bpy
+
+import creature
+from blender_helpers import closed_volume, evaluated_vertices, make_active, user_fingerprint, \
+    vertices
+from test_spacetime import run_cli
+
+
+def prepared_creature():
+    obj, rig = creature.build(bpy, np)
+    settings = obj.rs_elastic
+    settings.pin_group = "Follow Rig"
+    settings.edge_length, settings.num_modes = 0.06, 12
+    settings.youngs_modulus, settings.density = 3.0e4, 1000.0       # soft flesh: it jiggles
+    settings.damping_mass, settings.damping_stiffness = 0.0, 0.002
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 36
+    make_active(obj)
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    return obj, rig
+
+
+def poses(obj, frames):
+    out = []
+    for frame in frames:
+        bpy.context.scene.frame_set(frame)
+        out.append(evaluated_vertices(obj))
+    return np.array(out)
+
+
+def rig_only(obj, frames):
+    """The evaluated mesh with the bake muted: the rig's own motion."""
+    keys = obj.data.shape_keys
+    saved = [(b, b.mute) for b in keys.key_blocks]
+    for block, _ in saved[1:]:
+        block.mute = True
+    try:
+        return poses(obj, frames)
+    finally:
+        for block, mute in saved:
+            block.mute = mute
+
+
+def test_a_rigged_creature_simulates_on_its_rig_and_keeps_the_users_animation(ext):
+    obj, rig = prepared_creature()
+    before = user_fingerprint()
+    make_active(obj)
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    assert user_fingerprint() == before
+    frames = list(range(1, 37))
+    assert ext.bridge.bake.bake_frames(obj) == frames
+    baked, rigged = poses(obj, frames), rig_only(obj, frames)
+    rest = vertices(obj)
+    follow = np.zeros(len(rest), dtype=bool)
+    group = obj.vertex_groups["Follow Rig"].index
+    follow[[v.index for v in obj.data.vertices for g in v.groups if g.group == group]] = True
+    # Follow Rig vertices are exactly where the rig puts them.
+    assert np.abs(baked[:, follow] - rigged[:, follow]).max() < 1e-5
+    # The flicked ear's tip lags, overshoots once its bone stops (frame 10) and swings back.
+    tip = (rest[:, 0] > 0.1) & (rest[:, 2] > creature.EAR_TOP - 1e-6)
+    lag = (baked[:, tip] - rigged[:, tip]).mean(axis=1)                     # (F, 3)
+    forward = lag[:, 1] if abs(lag[:, 1]).max() > abs(lag[:, 2]).max() else lag[:, 2]
+    swing = np.abs(lag).max()
+    print(f"ear tip deviation: largest {swing:.3f} m; belly {np.abs(baked - rigged).max():.3f} m")
+    assert swing > 0.01
+    assert np.any(np.diff(np.sign(forward[10:])) != 0)       # it rings after the stop
+    # Volume of the whole creature, rig plus flesh, stays that of the rest shape.
+    volume = np.array([closed_volume(obj, p) for p in baked]) / closed_volume(obj, rigged[0])
+    print(f"volume ratio {volume.min():.4f}-{volume.max():.4f}")
+    assert np.abs(volume - 1.0).max() < 0.03
+
+
+def test_a_rigged_body_needs_its_follow_group(ext, capfd):
+    obj, rig = creature.build(bpy, np)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 4
+    make_active(obj)
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}         # a free body prepares...
+    capfd.readouterr()
+    assert bpy.ops.rs_elastic.simulate() == {'CANCELLED'}      # ...but cannot ride the rig
+    assert "Follow Rig" in capfd.readouterr().out
+    assert ext.bridge.bake.bake_frames(obj) == []
+
+
+def test_command_line_bakes_a_rigged_creature_from_a_saved_file(ext, tmp_path):
+    obj, rig = prepared_creature()
+    blend = tmp_path / "critter.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    result = run_cli(blend, ["bake", "--mode", "simulate", "--object", obj.name])
+    assert result.returncode == 0, result.stdout + result.stderr
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    obj = bpy.data.objects[obj.name]
+    assert ext.bridge.bake.bake_frames(obj) == list(range(1, 37))
+
+
+def test_prepare_reads_the_rest_pose_whatever_frame_the_rig_is_on(ext):
+    """Oracle: the tet mesh prepared at frame 7 (the creature mid-hop, 0.35 m up) is the one
+    prepared at rest: same surface key, nodes within the rest mesh's bounds."""
+    obj, rig = creature.build(bpy, np)
+    obj.rs_elastic.edge_length, obj.rs_elastic.pin_group = 0.08, "Follow Rig"
+    make_active(obj)
+    bpy.context.scene.frame_set(7)
+    assert evaluated_vertices(obj)[:, 2].min() > vertices(obj)[:, 2].min() + 0.3   # posed
+    assert bpy.ops.rs_elastic.tetrahedralize() == {'FINISHED'}
+    posed_key = obj.rs_elastic.tets_key
+    bpy.context.scene.frame_set(1)
+    inputs = ext.bridge.bodies.read_inputs(obj, bpy.context.evaluated_depsgraph_get())
+    assert inputs.tets_key == posed_key
+    assert abs(inputs.surface_vertices[:, 2].min() - vertices(obj)[:, 2].min()) < 1e-6
+    assert obj.modifiers["Armature"].show_viewport                    # put back as it was
