@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..solver import cache, embed, fem, materials, modes, reduced, rs, tetmesh
-from . import scene
+from . import mesh_cache, scene
 from .jobs import Cancelled, Job
 from .scene import InputError
 
@@ -255,6 +255,8 @@ def _modifier_stack(obj):
     """A text describing the modifier stack: every modifier's type and settings."""
     parts = []
     for m in obj.modifiers:
+        if mesh_cache.is_bake_modifier(obj, m):     # the bake's own player is not an input
+            continue
         values = []
         for prop in m.bl_rna.properties:
             if prop.identifier in _SKIPPED_MODIFIER_PROPS or prop.is_readonly \
@@ -478,6 +480,11 @@ def energy_inputs(obj):
 def rest_surface(obj, depsgraph):
     """The evaluated surface (modifiers applied) without shape keys: bakes and previews are
     shape keys, and the tet mesh must not depend on the frame they play."""
+    with mesh_cache.muted(obj, depsgraph):     # a Mesh Cache bake is output, not the shape
+        return _surface_without_keys(obj, depsgraph)
+
+
+def _surface_without_keys(obj, depsgraph):
     if obj.data.shape_keys is None:
         return scene.evaluated_triangles(obj, depsgraph)
     saved = obj.show_only_shape_key, obj.active_shape_key_index

@@ -206,6 +206,15 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                     "writes that)")
     iterations: IntProperty(name="Iterations", default=20, min=1, soft_max=200,
                             description="Largest number of solver iterations")
+    bake_to: EnumProperty(
+        name="Bake To", default='KEYS',
+        items=[('KEYS', "Shape Keys", "One shape key per frame, inside the .blend (short shots)"),
+               ('CACHE', "Mesh Cache", "A .pc2 file next to the saved .blend, played by a Mesh "
+                                       "Cache modifier (long shots, dense meshes)")],
+        description="Where a bake goes")
+    cache_bake_file: StringProperty(
+        name="Cache Bake File", default="", subtype='FILE_PATH',
+        description="The .pc2 file of the current Mesh Cache bake (written by the extension)")
     use_take: BoolProperty(name="Edit the Take", default=False,
                            description="Use the stored take (a kept bake) as the input motion")
     take_weight: FloatProperty(name="Take Weight", default=0.01, min=0.0, soft_max=1.0,
