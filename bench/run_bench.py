@@ -776,6 +776,36 @@ def ring_table(ring, softbody):
     return "\n".join(lines) + "\n"
 
 
+def run_mesh_cache_shot(frames=1000, cuts=90):
+    """A 1,000-frame simulate-and-bake of a ~50k-vertex bar to a Mesh Cache, in Blender with the
+    extension installed from its zip (bench/mesh_cache_shot.py, its own process)."""
+    zips = sorted((ROOT / "dist").glob("rs_elastic-*-linux_x64.zip"))
+    if not zips:
+        return dict(case="mesh_cache", arg=str(frames), error="no extension zip: run make build")
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "mesh_cache_shot.py"),
+                          str(zips[-1]), str(frames), str(cuts)],
+                         capture_output=True, text=True, cwd=ROOT)
+    if out.returncode != 0:
+        return dict(case="mesh_cache", arg=str(frames),
+                    error=(out.stderr.strip().splitlines() or ["?"])[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def mesh_cache_table(row):
+    lines = ["## A long shot baked to a Mesh Cache (pinned bar, Blender, extension from its zip)",
+             "", "| vertices | frames | tets | Prepare s | simulate and bake s | .blend growth "
+             "| .pc2 MB | shape keys would hold MB | playback error / diagonal |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        lines.append(f"| {row['vertices']:,} | {row['frames']:,} | {row['tets']:,} "
+                     f"| {row['prepare_seconds']:.1f} | {row['simulate_and_bake_seconds']:.1f} "
+                     f"| {row['blend_growth_bytes']:,} B | {row['pc2_bytes'] / 2 ** 20:.0f} "
+                     f"| {row['shape_key_bytes'] / 2 ** 20:.0f} | {row['playback_error']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
 def run_child(case, arg):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
                          capture_output=True, text=True, cwd=ROOT)
@@ -865,6 +895,9 @@ def main():
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + softbody_table(results["softbody"], results["dynamics"])
     text += "\n" + ring_table(results["ring"], results["softbody_ring"])
+    results["mesh_cache"] = run_mesh_cache_shot()
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + mesh_cache_table(results["mesh_cache"])
     (output / "results.md").write_text(text)
     print(text)
 
