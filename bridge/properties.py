@@ -60,6 +60,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Edge Length", default=0.05, min=0.005, max=0.5, precision=3,
         description="Target tet edge length, as a fraction of the bounding-box diagonal. "
                     "Smaller is finer and slower")
+    proxy_triangles: IntProperty(
+        name="Proxy Triangles", default=0, min=0, soft_max=200000,
+        description="A denser surface is simplified to this many triangles before fTetWild "
+                    "meshes it (the render mesh is embedded in the tets anyway); 0: automatic, "
+                    "from the edge length")
     envelope: FloatProperty(
         name="Envelope", default=1e-3, min=1e-5, max=0.1, precision=4,
         description="How far the tet surface may stray from the mesh, as a fraction of the "
