@@ -94,7 +94,7 @@ test-matrix: $(LINUX_ZIP) $(foreach v,$(MATRIX),.venv-bpy-$(v)/.stamp)
 demo: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) tools/demo.py --output demo_output
 
-bench: deps
+bench: deps $(LINUX_ZIP)
 	PYTHONPATH=.deps:. $(PY) bench/run_bench.py --output bench_output
 
 clean:

@@ -46,6 +46,59 @@ def case_tetrahedralize(name):
                 tets=len(T), seconds=seconds)
 
 
+def case_prepare_dense(subdivisions):
+    """Prepare at the default settings (edge 0.05, 20 modes, automatic basis and cubature, a free
+    body) of a dense closed surface: the shared knight upsampled ``subdivisions`` times (4: 256k
+    triangles), through the proxy (``solver.proxy``), as bridge/bodies.py's stages do."""
+    import igl
+    import numpy as np
+    from solver import embed, fem, modes, proxy, reduced, rs, tetmesh
+    V, F = read_surface(MESHES / "decimated-knight.off")
+    V, F = igl.upsample(np.asarray(V, float), np.asarray(F, np.int64),
+                        number_of_subdivs=int(subdivisions))[:2]
+    seconds = {}
+    start = time.perf_counter()
+    budget = proxy.triangle_budget(V, F, 0.05)
+    P, G, simplified = proxy.proxy_surface(V, F, budget)
+    seconds["proxy"] = time.perf_counter() - start
+    start = time.perf_counter()
+    X, T = tetmesh.tetrahedralize(P, G)
+    seconds["tetrahedralize"] = time.perf_counter() - start
+    start = time.perf_counter()
+    embed.embed_points(X, T, V)
+    seconds["embed"] = time.perf_counter() - start
+    start = time.perf_counter()
+    masses = fem.lumped_masses(X, T, 1000.0)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, 20,
+                              rest_positions=X)
+    seconds["modes"] = time.perf_counter() - start
+    start = time.perf_counter()
+    recon = rs.PoissonReconstruction(X, T)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
+    seconds["reduced"] = time.perf_counter() - start
+    return dict(triangles=len(F), proxy_triangles=len(G), simplified=simplified, nodes=len(X),
+                tets=len(T), basis_size=deformer.basis_size,
+                cubature_tets=len(deformer.cubature_tets), seconds=seconds,
+                total_seconds=sum(seconds.values()), peak_rss_mb=peak_rss_mb())
+
+
+def prepare_dense_table(row):
+    lines = ["## Prepare a dense surface at the default settings (knight upsampled to 256k "
+             "triangles, free body; targets < 60 s, < 2 GB)", "",
+             "| triangles | proxy | nodes | tets | rB | cubature | proxy s | fTetWild s | embed s "
+             "| modes s | reduced s | total s | peak RSS MB |", "|" + "---|" * 13]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        t = row["seconds"]
+        lines.append(f"| {row['triangles']:,} | {row['proxy_triangles']:,} | {row['nodes']:,} "
+                     f"| {row['tets']:,} | {row['basis_size']} | {row['cubature_tets']} "
+                     f"| {t['proxy']:.1f} | {t['tetrahedralize']:.1f} | {t['embed']:.1f} "
+                     f"| {t['modes']:.1f} | {t['reduced']:.1f} | {row['total_seconds']:.1f} "
+                     f"| {row['peak_rss_mb']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def case_modes(size):
     import numpy as np
     from solver import fem, meshgen, modes
@@ -96,7 +149,8 @@ def case_rs_full(size, repeats=5):
                 peak_rss_mb=peak_rss_mb(), rss_before_mb=baseline)
 
 
-CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes, "rs_full": case_rs_full}
+CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes, "rs_full": case_rs_full,
+         "prepare_dense": case_prepare_dense}
 
 
 def _median_seconds(function, number, repeat=15):
@@ -776,6 +830,36 @@ def ring_table(ring, softbody):
     return "\n".join(lines) + "\n"
 
 
+def run_mesh_cache_shot(frames=1000, cuts=90):
+    """A 1,000-frame simulate-and-bake of a ~50k-vertex bar to a Mesh Cache, in Blender with the
+    extension installed from its zip (bench/mesh_cache_shot.py, its own process)."""
+    zips = sorted((ROOT / "dist").glob("rs_elastic-*-linux_x64.zip"))
+    if not zips:
+        return dict(case="mesh_cache", arg=str(frames), error="no extension zip: run make build")
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "mesh_cache_shot.py"),
+                          str(zips[-1]), str(frames), str(cuts)],
+                         capture_output=True, text=True, cwd=ROOT)
+    if out.returncode != 0:
+        return dict(case="mesh_cache", arg=str(frames),
+                    error=(out.stderr.strip().splitlines() or ["?"])[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def mesh_cache_table(row):
+    lines = ["## A long shot baked to a Mesh Cache (pinned bar, Blender, extension from its zip)",
+             "", "| vertices | frames | tets | Prepare s | simulate and bake s | .blend growth "
+             "| .pc2 MB | shape keys would hold MB | playback error / diagonal |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        lines.append(f"| {row['vertices']:,} | {row['frames']:,} | {row['tets']:,} "
+                     f"| {row['prepare_seconds']:.1f} | {row['simulate_and_bake_seconds']:.1f} "
+                     f"| {row['blend_growth_bytes']:,} B | {row['pc2_bytes'] / 2 ** 20:.0f} "
+                     f"| {row['shape_key_bytes'] / 2 ** 20:.0f} | {row['playback_error']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
 def run_child(case, arg):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
                          capture_output=True, text=True, cwd=ROOT)
@@ -865,6 +949,12 @@ def main():
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + softbody_table(results["softbody"], results["dynamics"])
     text += "\n" + ring_table(results["ring"], results["softbody_ring"])
+    results["prepare_dense"] = run_child("prepare_dense", "4")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + prepare_dense_table(results["prepare_dense"])
+    results["mesh_cache"] = run_mesh_cache_shot()
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + mesh_cache_table(results["mesh_cache"])
     (output / "results.md").write_text(text)
     print(text)
 

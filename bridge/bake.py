@@ -1,5 +1,8 @@
 """Shape-key output: sets of named keys, and baked animations (one key per frame).
 
+A bake goes to shape keys (below) or, with the object's Bake To set to Mesh Cache, to a .pc2
+file played by a Mesh Cache modifier (``mesh_cache``); either replaces the other.
+
 A baked animation is the form every RS Elastic bake takes: key `RS Bake 0042` holds frame 42's
 pose and is keyed 0 on frame 41, 1 on frame 42 and 0 on frame 43, with constant interpolation, so
 scrubbing plays the bake. Baking again replaces the previous bake (its keys and their F-curves).
@@ -26,7 +29,7 @@ import re
 
 import numpy as np
 
-from . import animation
+from . import animation, mesh_cache
 from .scene import InputError, require_single_user
 
 BAKE_PREFIX = "RS Bake "
@@ -165,12 +168,29 @@ def check_poses(object_name, rest, poses):
                          "was baked")
 
 
-def write_bake(obj, frames, positions):
-    """Replace the object's bake with one key per frame. positions: (F, n, 3) base-vertex poses.
+def require_target(obj):
+    """Refuse (InputError) a bake that could not be written, before any work: a Mesh Cache
+    bake of an unsaved file has nowhere to go."""
+    require_single_user(obj)
+    if obj.rs_elastic.bake_to == 'CACHE':
+        mesh_cache.bake_path(obj)
 
-    Returns the names of the user's keys whose value is not 0: they add on top of the bake.
+
+def write_bake(obj, frames, positions):
+    """Replace the object's bake with one key per frame, or its Mesh Cache (Bake To).
+    positions: (F, n, 3) base-vertex poses.
+
+    Returns the names of the user's keys whose value is not 0: they add on top of a key bake
+    (a Mesh Cache bake overwrites them while it plays).
     """
     require_single_user(obj)
+    if obj.rs_elastic.bake_to == 'CACHE':
+        remove_owned_keys(obj, owned_keys(obj, "bake"))
+        mesh_cache.write(obj, frames, positions)
+        keys = obj.data.shape_keys
+        return [] if keys is None else [
+            k.name for k in keys.key_blocks
+            if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
     clear_bake(obj)
     blocks = add_owned_keys(obj, [bake_key_name(frame) for frame in frames], "bake")
     for block, pose in zip(blocks, positions):
@@ -186,8 +206,9 @@ def write_bake(obj, frames, positions):
 
 
 def clear_bake(obj):
-    """Remove the bake's keys and F-curves. Returns how many keys were removed."""
-    return remove_owned_keys(obj, owned_keys(obj, "bake"))
+    """Remove the bake: its keys and F-curves, or its Mesh Cache modifier and file. Returns
+    how many frames were removed."""
+    return remove_owned_keys(obj, owned_keys(obj, "bake")) + mesh_cache.clear(obj)
 
 
 def _frame_of(block, prefix):
@@ -202,8 +223,9 @@ def _frames_and_blocks(obj, what, prefix):
 
 
 def bake_frames(obj):
-    """Sorted frames of the object's current bake (empty if none)."""
-    return [frame for frame, _ in _frames_and_blocks(obj, "bake", BAKE_PREFIX)]
+    """Sorted frames of the object's current bake, keys or Mesh Cache (empty if none)."""
+    return ([frame for frame, _ in _frames_and_blocks(obj, "bake", BAKE_PREFIX)]
+            or mesh_cache.frames_of(obj))
 
 
 def keep_bake_as_take(obj):
@@ -215,7 +237,7 @@ def keep_bake_as_take(obj):
     require_single_user(obj)
     blocks = _frames_and_blocks(obj, "bake", BAKE_PREFIX)
     if not blocks:
-        return []
+        return _cache_bake_as_take(obj)
     remove_owned_keys(obj, owned_keys(obj, "take"))
     keys = obj.data.shape_keys
     animation.remove_fcurves(keys, {_value_path(block.name) for _, block in blocks})
@@ -237,3 +259,19 @@ def take_poses(obj):
     for row, (_, block) in zip(positions, blocks):
         block.data.foreach_get("co", row)
     return [f for f, _ in blocks], positions.reshape(len(blocks), n, 3).astype(np.float64)
+
+
+def _cache_bake_as_take(obj):
+    """keep_bake_as_take for a Mesh Cache bake: its poses become the take's keys (the take is
+    an input the solver reads back, so it lives in the .blend), and the cache bake goes."""
+    frames, positions = mesh_cache.poses(obj)
+    if not frames:
+        return []
+    remove_owned_keys(obj, owned_keys(obj, "take"))
+    names = [f"{TAKE_PREFIX}{frame:04d}" for frame in frames]
+    for block, pose in zip(add_owned_keys(obj, names, "take"), positions):
+        _set_positions(block, pose)
+        block.value = 0.0
+    mesh_cache.clear(obj)
+    obj.data.update()
+    return frames

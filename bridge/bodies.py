@@ -41,8 +41,8 @@ import bpy
 import numpy as np
 import scipy.sparse as sp
 
-from ..solver import cache, embed, fem, materials, modes, reduced, rs, tetmesh
-from . import armature, scene
+from ..solver import cache, embed, fem, materials, modes, proxy, reduced, rs, tetmesh
+from . import armature, mesh_cache, scene
 from .jobs import Cancelled, Job
 from .scene import InputError
 
@@ -255,6 +255,8 @@ def _modifier_stack(obj):
     """A text describing the modifier stack: every modifier's type and settings."""
     parts = []
     for m in obj.modifiers:
+        if mesh_cache.is_bake_modifier(obj, m):     # the bake's own player is not an input
+            continue
         values = []
         for prop in m.bl_rna.properties:
             if prop.identifier in _SKIPPED_MODIFIER_PROPS or prop.is_readonly \
@@ -315,7 +317,8 @@ def _geometry_fingerprint(obj):
 
 
 def _settings_fingerprint(settings):
-    return {"tet mesh settings": repr((settings.edge_length, settings.envelope)),
+    return {"tet mesh settings": repr((settings.edge_length, settings.envelope,
+                                       settings.proxy_triangles)),
             "material": repr((settings.youngs_modulus, settings.poisson_ratio, settings.density)),
             "number of modes": repr(settings.num_modes),
             "reduced RS settings": repr((settings.basis_size, settings.cubature_tets,
@@ -403,6 +406,7 @@ class BodyInputs:
     edge_length: float
     envelope: float
     cache_dirs: list
+    proxy_triangles: int = 0       # proxy budget (0: automatic, solver.proxy.triangle_budget)
     base_triangles: np.ndarray = None   # (t, 3) triangles of the base mesh (the pin rule reads them)
     pin_weights: np.ndarray = None      # (n,) float32 in [0, 1], None for a free body
     stored_tets: tuple = None      # (nodes, tets) kept in the .blend for tets_key, or None
@@ -420,7 +424,8 @@ class BodyInputs:
     @functools.cached_property
     def tets_key(self):
         return cache.content_key("tets", self.surface_vertices, self.surface_triangles,
-                                 self.base_vertices, self.edge_length, self.envelope)
+                                 self.base_vertices, self.edge_length, self.envelope,
+                                 ("proxy", self.proxy_triangles))
 
     def modes_key(self, tets_digest):
         """Key of the modes of the tet mesh whose arrays hash to tets_digest."""
@@ -478,7 +483,8 @@ def energy_inputs(obj):
 def rest_surface(obj, depsgraph):
     """The evaluated surface (modifiers applied) without shape keys: bakes and previews are
     shape keys, and the tet mesh must not depend on the frame they play."""
-    with armature.rest_pose(obj, depsgraph):   # a rigged body is prepared in its rest pose
+    # A rigged body is prepared in its rest pose; a Mesh Cache bake is output, not the shape.
+    with armature.rest_pose(obj, depsgraph), mesh_cache.muted(obj, depsgraph):
         return _surface_without_keys(obj, depsgraph)
 
 
@@ -505,7 +511,7 @@ def read_inputs(obj, depsgraph, with_material=True):
     except tetmesh.TetMeshError as exc:
         raise InputError(f"'{obj.name}': {exc}") from None
     inputs = BodyInputs(obj.name, V, F, scene.base_vertices(obj), settings.edge_length,
-                        settings.envelope, cache_dirs())
+                        settings.envelope, cache_dirs(), proxy_triangles=settings.proxy_triangles)
     inputs.stored_tets = stored_tet_mesh(obj, inputs.tets_key)
     if not with_material:
         return inputs
@@ -603,6 +609,22 @@ def _cached_stage(inputs, stage, key, parent, compute, job, accept=lambda value:
     return value
 
 
+def proxy_for(inputs, job):
+    """The surface fTetWild meshes: the evaluated surface, or its simplified closed proxy when it
+    has more triangles than the budget (the Proxy Triangles setting, 0: ``proxy.triangle_budget``
+    of the edge length). Says which in the progress."""
+    V, F = inputs.surface_vertices, inputs.surface_triangles
+    budget = inputs.proxy_triangles or proxy.triangle_budget(V, F, inputs.edge_length)
+    if len(F) > budget:
+        job.step(0.02, f"Simplifying {len(F):,} triangles to a {budget:,}-triangle proxy")
+        V, F, simplified = proxy.proxy_surface(V, F, budget)
+        if not simplified:
+            job.warn(f"'{inputs.object_name}' is not a closed manifold, so fTetWild meshes all "
+                     f"{len(F):,} of its triangles (slower)")
+    job.step(0.05, f"Tetrahedralising {len(F):,} triangles with fTetWild")
+    return V, F
+
+
 def tet_stage(inputs, job):
     """The tet mesh and embedding: the one kept in the .blend if any (embedded again when no
     cache file has it), else from memory, the disk cache, or fTetWild."""
@@ -616,11 +638,10 @@ def tet_stage(inputs, job):
         if stored is not None:
             X, T = stored
         else:
-            job.step(0.05, "Tetrahedralising with fTetWild")
+            V, F = proxy_for(inputs, job)
             stats["tetrahedralize"] += 1
             try:
-                X, T = tetmesh.tetrahedralize(inputs.surface_vertices, inputs.surface_triangles,
-                                              edge_length_fac=inputs.edge_length,
+                X, T = tetmesh.tetrahedralize(V, F, edge_length_fac=inputs.edge_length,
                                               epsilon=inputs.envelope,
                                               should_cancel=job.is_cancelled)
             except tetmesh.TetMeshError as exc:

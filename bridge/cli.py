@@ -50,6 +50,10 @@ def _parser():
     bake_cmd.add_argument("--frames", help=f"frame range A-B, at least 3 and at most "
                                            f"{MAX_FRAMES} frames (default: the body's or the "
                                            "scene's)")
+    bake_cmd.add_argument("--bake-to", choices=("keys", "cache"), default=None,
+                          help="shape keys in the .blend, or a Mesh Cache (.pc2 next to the "
+                               "opened .blend, played by a Mesh Cache modifier); default: the "
+                               "object's Bake To setting")
     bake_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open file)")
     return parser
 
@@ -113,6 +117,8 @@ def bake_command(args):
     frames = None if args.frames is None else _frame_range(args.frames)
     output = _output_path(args.output)
     bpy.context.view_layer.objects.active = obj
+    if args.bake_to is not None:
+        obj.rs_elastic.bake_to = args.bake_to.upper()
     if frames is not None:
         obj.rs_elastic.use_scene_range = False
         obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = frames

@@ -13,7 +13,7 @@ by linked duplicates shows no preview: its keys belong to every object using it.
 """
 import numpy as np
 
-from . import bake, rs_tools, scene
+from . import bake, mesh_cache, rs_tools, scene
 from .scene import InputError
 
 PREVIEW_KEY = bake.PREVIEW_KEY
@@ -63,6 +63,7 @@ def show(obj):
         key, = bake.add_owned_keys(obj, [PREVIEW_KEY], "preview")
     key.data.foreach_set("co", positions.astype(np.float32).ravel())
     key.value = 1.0
+    _show_cache_bake(obj, False)     # a Mesh Cache bake would overwrite the preview key
     obj.data.update()
     return True
 
@@ -70,7 +71,14 @@ def show(obj):
 def hide(obj):
     if obj.type == 'MESH':
         bake.remove_owned_keys(obj, bake.owned_keys(obj, "preview"))
+        _show_cache_bake(obj, True)
         obj.data.update()
+
+
+def _show_cache_bake(obj, visible):
+    modifier = mesh_cache.owned_modifier(obj)
+    if modifier is not None and modifier.show_viewport != visible:
+        modifier.show_viewport = visible
 
 
 def is_shown(obj):

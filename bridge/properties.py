@@ -60,6 +60,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Edge Length", default=0.05, min=0.005, max=0.5, precision=3,
         description="Target tet edge length, as a fraction of the bounding-box diagonal. "
                     "Smaller is finer and slower")
+    proxy_triangles: IntProperty(
+        name="Proxy Triangles", default=0, min=0, soft_max=200000,
+        description="A denser surface is simplified to this many triangles before fTetWild "
+                    "meshes it (the render mesh is embedded in the tets anyway); 0: automatic, "
+                    "from the edge length")
     envelope: FloatProperty(
         name="Envelope", default=1e-3, min=1e-5, max=0.1, precision=4,
         description="How far the tet surface may stray from the mesh, as a fraction of the "
@@ -206,6 +211,15 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                     "writes that)")
     iterations: IntProperty(name="Iterations", default=20, min=1, soft_max=200,
                             description="Largest number of solver iterations")
+    bake_to: EnumProperty(
+        name="Bake To", default='KEYS',
+        items=[('KEYS', "Shape Keys", "One shape key per frame, inside the .blend (short shots)"),
+               ('CACHE', "Mesh Cache", "A .pc2 file next to the saved .blend, played by a Mesh "
+                                       "Cache modifier (long shots, dense meshes)")],
+        description="Where a bake goes")
+    cache_bake_file: StringProperty(
+        name="Cache Bake File", default="", subtype='FILE_PATH',
+        description="The .pc2 file of the current Mesh Cache bake (written by the extension)")
     use_take: BoolProperty(name="Edit the Take", default=False,
                            description="Use the stored take (a kept bake) as the input motion")
     take_weight: FloatProperty(name="Take Weight", default=0.01, min=0.0, soft_max=1.0,

@@ -103,6 +103,7 @@ def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
 def gather(obj, blender_scene):
     """Validate and set up the simulation. Raises InputError."""
     scene.require_body(obj)
+    bake.require_target(obj)
     tools = spacetime_inputs.prepared_tools(obj)
     settings = obj.rs_elastic
     frames = spacetime_inputs.frame_range(obj, blender_scene)

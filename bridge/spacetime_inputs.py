@@ -107,6 +107,7 @@ def _key_positions(obj, name):
 def gather(obj, blender_scene):
     """Validate and collect everything the solve needs. Raises InputError."""
     scene.require_body(obj)
+    bake.require_target(obj)
     tools = prepared_tools(obj)
     settings = obj.rs_elastic
     frames = frame_range(obj, blender_scene)

@@ -1,11 +1,12 @@
-"""Remove the body's bake (its RS Bake shape keys and their keyframes)."""
+"""Remove the body's bake (its RS Bake shape keys and their keyframes, or its Mesh Cache)."""
 import bpy
 
 from ..bridge import bake, scene
 
 
 class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
-    """Remove the baked shape keys and their keyframes; your own keys stay"""
+    """Remove the bake: its shape keys and keyframes, or its Mesh Cache modifier and .pc2 file;
+    your own keys and modifiers stay"""
     bl_idname = "rs_elastic.clear_bake"
     bl_label = "Clear Bake"
     bl_options = {'REGISTER', 'UNDO'}

@@ -105,6 +105,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
         if self.output == 'ANIMATION':
             if self.frame_end <= self.frame_start:
                 raise InputError(f"The frame range {self.frame_start}–{self.frame_end} is empty")
+            bake.require_target(obj)
             frames = list(range(self.frame_start, self.frame_end + 1))
             ts = np.linspace(0.0, 1.0, len(frames))
         else:

@@ -1,7 +1,7 @@
 """The parent panel: which body the settings below belong to."""
 import bpy
 
-from ..bridge import bodies
+from ..bridge import bodies, mesh_cache
 
 
 class RSElasticPanel:
@@ -24,7 +24,23 @@ def draw_frame_range(layout, settings):
         row.prop(settings, "frame_end")
 
 
-def draw_bake_buttons(layout):
+def frame_count(scene, settings):
+    """Frames in the range a solve or simulation bakes."""
+    if settings.use_scene_range:
+        return scene.frame_end - scene.frame_start + 1
+    return settings.frame_end - settings.frame_start + 1
+
+
+def draw_bake_buttons(layout, obj=None, frames=0):
+    """Bake To, a Mesh Cache suggestion when a shape-key bake of ``frames`` would be large,
+    and Keep Bake as Take / Clear Bake."""
+    if obj is not None:
+        settings = obj.rs_elastic
+        layout.prop(settings, "bake_to")
+        size = mesh_cache.shape_key_bytes(frames, len(obj.data.vertices))
+        if settings.bake_to == 'KEYS' and size > mesh_cache.SUGGEST_BYTES:
+            layout.label(text=f"Shape keys would add {size / 2 ** 20:.0f} MB to the .blend: "
+                              "Mesh Cache keeps them on disk", icon='INFO')
     row = layout.row(align=True)
     row.operator("rs_elastic.keep_take", icon='PINNED')
     row.operator("rs_elastic.clear_bake", icon='TRASH')

@@ -5,7 +5,7 @@ import bpy
 
 from ..bridge import bodies, colliders
 from ..solver.dynamics import damping_ratio
-from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
+from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range, frame_count
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -32,7 +32,8 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
         draw_frame_range(layout, settings)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
-        draw_bake_buttons(layout)
+        draw_bake_buttons(layout, context.active_object,
+                          frame_count(context.scene, context.active_object.rs_elastic))
 
 
 def energy_label(obj):

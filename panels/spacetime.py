@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import bake, live, spacetime_inputs
-from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range
+from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range, frame_count
 
 
 class RS_ELASTIC_UL_handles(bpy.types.UIList):
@@ -61,7 +61,8 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
         live_status = live.status(obj) if settings.live else None
         if live_status is not None:
             layout.label(text=live_status, icon='PREVIEW_RANGE')
-        draw_bake_buttons(layout)
+        draw_bake_buttons(layout, context.active_object,
+                          frame_count(context.scene, context.active_object.rs_elastic))
         status = spacetime_inputs.LAST_STATUS.get(obj.name)
         if status is not None:
             converged, text = status

@@ -113,7 +113,8 @@ def fingerprint(obj):
 # Results the operators write on success; everything else in obj.rs_elastic is the user's.
 RESULT_SETTINGS = {"tet_node_count", "tet_count", "tets_key", "prepared_key", "reduced_key",
                    "reduced_basis_count", "cubature_count", "mode_results", "mnf",
-                   "solve_history", "residual", "preview_made_basis", "use_take"}
+                   "solve_history", "residual", "preview_made_basis", "use_take",
+                   "cache_bake_file"}
 
 
 def _rna_values(struct, skip=()):
@@ -164,7 +165,8 @@ def user_fingerprint(obj=None):
     for other in sorted(bpy.data.objects, key=lambda o: o.name):
         h.update(repr((other.name, other.type, tuple(map(tuple, other.matrix_basis)),
                        other.parent.name if other.parent else None,
-                       [(m.name, m.type, m.show_viewport) for m in other.modifiers],
+                       [(m.name, m.type, m.show_viewport) for m in other.modifiers
+                        if not (m.type == 'MESH_CACHE' and m.name == "RS Elastic Bake")],
                        [g.name for g in other.vertex_groups], _curves(other))).encode())
         if other.type != 'MESH':
             continue
