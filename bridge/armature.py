@@ -13,9 +13,11 @@ skinning. Bone envelopes, dual-quaternion skinning (Preserve Volume) and multi-m
 blending are reported and left out.
 """
 import contextlib
+import dataclasses
 
 import numpy as np
 
+from ..solver import rig
 from .scene import InputError
 
 
@@ -124,3 +126,34 @@ def require_follow_group(obj, has_pins):
         raise InputError(f"'{obj.name}' is rigged but has no Follow Rig group: set the Pin "
                          "Group to the vertices that move exactly with the bones (the rest is "
                          "free flesh), then Prepare")
+
+
+def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
+    """The ``solver.rig.RigLoad`` of a rigged body over ``frames`` (h [s] apart): the bones'
+    motion and gravity (3,) [m/s^2, world] as its flesh feels them; masses (N,) [kg]."""
+    bones = deform_bones(obj)
+    transforms = bone_transforms(obj, bones, blender_scene, frames)
+    weights = rig.node_weights(tools.embedding, vertex_weights(obj, bones), tools.nodes,
+                               tools.tets)
+    motion = rig.RigMotion((np.array(frames) - frames[0]) * h, transforms)
+    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, gravity=gravity)
+
+
+def rest_targets(obj, blender_scene, frames, tracks):
+    """Handle tracks with their targets moved from the body's object space at each frame into
+    its rest pose: through the inverse skinning of the handle (its vertices' mean bone weights),
+    so a handle met in the rest pose lands on its Empty once the Armature modifier runs."""
+    bones = deform_bones(obj)
+    transforms = bone_transforms(obj, bones, blender_scene, frames)       # (F, b + 1, 3, 4)
+    weights = vertex_weights(obj, bones)
+    first = frames[0]
+    out = []
+    for track in tracks:
+        rows = np.asarray(track.frames) - first
+        skin = np.einsum("b,fbij->fij", weights[track.vertices].mean(axis=0), transforms[rows])
+        world = transforms[rows, -1]                                       # the object's own
+        points = np.einsum("fij,fj->fi", world[:, :, :3], track.targets) + world[:, :, 3]
+        rest = np.linalg.solve(skin[:, :, :3], (points - skin[:, :, 3])[:, :, None])[:, :, 0]
+        out.append(dataclasses.replace(track, targets=rest, rotation_frames=None,
+                                       rotations=None))
+    return out

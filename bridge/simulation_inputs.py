@@ -3,7 +3,7 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import contact, dynamics, fem, inversion, materials, rig
+from ..solver import contact, dynamics, fem, inversion, materials
 from . import armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
@@ -151,17 +151,6 @@ def gather(obj, blender_scene):
                          scene.base_vertices(obj), free, warnings)
 
 
-def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
-    """The ``rig.RigLoad`` of a rigged body over ``frames``: the bones' motion and gravity felt
-    by its flesh (``bridge.armature`` for the model)."""
-    bones = armature.deform_bones(obj)
-    transforms = armature.bone_transforms(obj, bones, blender_scene, frames)
-    weights = rig.node_weights(tools.embedding, armature.vertex_weights(obj, bones),
-                               tools.nodes, tools.tets)
-    motion = rig.RigMotion((np.array(frames) - frames[0]) * h, transforms)
-    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, gravity=gravity)
-
-
 def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     """A rigged body: its flesh simulated in rest space under the rig's loads (no frame motion,
     gravity through the rig), baked as shape keys the Armature modifier carries."""
@@ -174,7 +163,7 @@ def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
-    load = rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
+    load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
     simulation = dynamics.Simulation(
         tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
         mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,

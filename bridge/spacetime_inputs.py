@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import accuracy, fem, rs, spacetime
-from . import bake, bodies, constraints, rs_tools, scene
+from . import armature, bake, bodies, constraints, rs_tools, scene
 from .scene import InputError
 
 
@@ -114,6 +114,9 @@ def gather(obj, blender_scene):
     first = frames[0]
     rest = scene.base_vertices(obj)
     tracks, warnings = constraints.read_handles(obj, blender_scene, frames)
+    rigged = armature.is_rigged(obj)
+    if rigged:                 # the edit is a deviation from the rig, in the rest pose
+        tracks = _rig_tracks(obj, blender_scene, tools, frames, tracks, warnings)
 
     handle_parts, track_slices, rest_centroids, count = [], [], [], 0
     handle_index = {h.empty.name: i for i, h in enumerate(settings.handles) if h.empty is not None}
@@ -180,8 +183,16 @@ def gather(obj, blender_scene):
         keyframes = spacetime.Keyframes(np.array(key_frames) - first,
                                         poses_to_modal(tools, key_poses),
                                         np.full(len(key_frames), keyframe_weight * settings.take_weight))
+    external = None
+    if rigged:                 # what the bones' motion and gravity do to the flesh
+        masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+        load = armature.rig_load(obj, blender_scene, tools, frames, h,
+                                 scene.scene_gravity(blender_scene), masses)
+        jacobian = tools.deformer.q_jacobian(np.zeros(tools.deformer.num_coords))
+        external = load.modal_forces((np.array(frames) - first) * h, jacobian)[:, :optimised]
     problem = spacetime.SpaceTimeProblem(
         frames=len(frames), h=h, eigenvalues=eigenvalues, damping=damping,
+        external_forces=external,
         deformer=tools.deformer, handles=handles, keyframes=keyframes, gamma=gamma,
         fix_start=not settings.use_take, material_freedom=settings.material_freedom)
     return SpaceTimeJob(obj.name, frames, problem, settings.optimize_material,
@@ -189,6 +200,18 @@ def gather(obj, blender_scene):
                         [track.name for track in tracks],
                         handle_stretch_demands(tools, rest_centroids, tracks),
                         float(np.mean(obj.matrix_world.to_scale())), warnings)
+
+
+def _rig_tracks(obj, blender_scene, tools, frames, tracks, warnings):
+    """Checks for an edit of a rigged body, and its handle targets in the rest pose."""
+    armature.require_follow_group(obj, len(tools.pinned_nodes) > 0)
+    if obj.rs_elastic.optimize_material:
+        raise InputError(f"'{obj.name}' is rigged: material optimisation is not available on a "
+                         "rig yet; untick Optimize Material")
+    warnings += armature.warnings_for(obj)
+    warnings += [f"Handle '{track.name}': orientation is not followed on a rigged body; only "
+                 "its position is" for track in tracks if track.rotations is not None]
+    return armature.rest_targets(obj, blender_scene, frames, tracks)
 
 
 def solve(job_inputs, job):
