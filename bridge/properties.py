@@ -218,7 +218,7 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                                        "Cache modifier (long shots, dense meshes)")],
         description="Where a bake goes")
     cache_bake_file: StringProperty(
-        name="Cache Bake File", default="", subtype='FILE_PATH',
+        name="Cache Bake File", default="",
         description="The .pc2 file of the current Mesh Cache bake (written by the extension)")
     use_take: BoolProperty(name="Edit the Take", default=False,
                            description="Use the stored take (a kept bake) as the input motion")
