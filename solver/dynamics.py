@@ -587,6 +587,10 @@ class Simulation:
     contact: a ``contact.Contact`` of this body's surface samples (its rows over the same
       basis B, its points in rest space), or None. Its energy joins every step's objective
       (module docstring, Contact); a start inside a collider raises ValueError at the first step.
+    external_force: callable t [s] -> (rB,) generalised force in q-space [N m per unit q],
+      e.g. ``rig.RigLoad.force`` (a rig's accelerations and gravity felt by its flesh), added
+      to gravity's B^T M g wherever that enters (each step at t_{n+1}, the start acceleration
+      at t0); fixed frame only (no ``free``, no ``frame_motion``).
 
     The body starts at rest in its frame at s = 0 (``set_state`` changes that); a moving frame's
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
@@ -597,9 +601,13 @@ class Simulation:
     def __init__(self, deformer, rest_positions, masses, potential, h, gravity=(0.0, 0.0, 0.0),
                  mass_damping=0.0, stiffness_damping=0.0, free=False, frame_motion=None,
                  start_time=0.0, tolerance=1e-5, max_iterations=20, integrator="newmark",
-                 substeps=1, tets=None, contact=None):
+                 substeps=1, tets=None, contact=None, external_force=None):
         if free and frame_motion is not None:
             raise ValueError("a free body cannot also follow a prescribed frame motion")
+        if external_force is not None and (free or frame_motion is not None):
+            raise ValueError("an external force is for a body in a fixed frame (e.g. the "
+                             "flesh of a rig, solver.rig), not a free or moving one")
+        self.external_force = external_force
         if deformer.basis is None:
             raise ValueError("the deformer has no basis B; build it with its basis")
         if integrator not in INTEGRATORS:
@@ -731,7 +739,7 @@ class Simulation:
         self._a_s = np.zeros(self.num_coords)
         v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
         if not (self.free or self.frame_motion is not None):
-            force = self.first_moment_B.T @ self.gravity
+            force = self._fixed_load(self.time)
         else:
             R = np.asarray(self.rotation, float)
             R1, R2, _, c2 = self._frame_rates()
@@ -1030,8 +1038,15 @@ class Simulation:
         dt, M = self.dt, self.mass_matrix
         q_hat = self.q + dt * v_q + 0.25 * dt * dt * a_q
         _, linear = self._mass_damping_terms(damped_q)
-        b = (4.0 / dt ** 2) * (M @ q_hat) - linear + self.first_moment_B.T @ self.gravity
+        b = (4.0 / dt ** 2) * (M @ q_hat) - linear + self._fixed_load(self.time + dt)
         return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, M, b)
+
+    def _fixed_load(self, t):
+        """(rB,) B^T M g plus the external force at time t [s] (fixed frame)."""
+        load = self.first_moment_B.T @ self.gravity
+        if self.external_force is not None:
+            load = load + np.asarray(self.external_force(t), dtype=np.float64)
+        return load
 
     def _newmark_moving_inertia(self, R, c, target, v_q):
         """Prescribed frame (R, c) at t_{n+1}: 2/dt^2 |Y(q) - R^T (x_hat - c)|^2_M + damping."""
@@ -1089,7 +1104,7 @@ class Simulation:
         """R = I, c = 0: b = M_B (2 q_n - q_{n-1}) / dt^2 + B^T M g + alpha/dt M_B q_n."""
         h, M = self.dt, self.mass_matrix
         b = (M @ ((2.0 + self.alpha * h) * self.q - self.q_prev)) / (h * h)
-        b += self.first_moment_B.T @ self.gravity
+        b += self._fixed_load(self.time + h)
         return _QuadraticInertia(1.0 / (h * h) + self.alpha / h, M, b)
 
     def _moving_inertia(self, R, c):

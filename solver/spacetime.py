@@ -211,7 +211,9 @@ class SpaceTimeProblem:
     on construction. material_freedom f >= 1 (dimensionless; inf: no bound): material
     optimisation keeps every sqrt(lambda_k) within [1/f, f] and d_k within [1/f, f] times the
     prepared ``eigenvalues`` / ``damping``; material_weight rho [E_f units] of the pull E_m toward
-    them (None: automatic). See the module doc, "Material regulariser".
+    them (None: automatic). See the module doc, "Material regulariser". external_forces (F, r):
+    known modal forces per frame [modal units / s^2] that need no control, e.g. a rig's loads on
+    its flesh (``rig.RigLoad.modal_forces``); not with material optimisation.
     """
 
     frames: int
@@ -229,6 +231,7 @@ class SpaceTimeProblem:
     scheme: str = "auto"
     material_freedom: float = MATERIAL_FREEDOM
     material_weight: Optional[float] = None
+    external_forces: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.frames = int(self.frames)
@@ -242,6 +245,9 @@ class SpaceTimeProblem:
         self.start_state = (np.zeros((2, r)) if self.start_state is None
                             else np.asarray(self.start_state, dtype=np.float64).reshape(2, r))
         self.scheme = resolve_scheme(self.scheme, self.h, self.eigenvalues)
+        if self.external_forces is not None:
+            self.external_forces = np.asarray(self.external_forces,
+                                              dtype=np.float64).reshape(self.frames, r)
         self._check(m, r)
 
     def _check(self, m, r):
@@ -348,21 +354,26 @@ def stencil(eigenvalues, damping, h, scheme="central"):
     return base + stiffness_weights(scheme)[:, None] * eigenvalues
 
 
-def dynamics_residual(Z, eigenvalues, damping, h, scheme="central"):
-    """(F-2, r) residual of the modal equation of motion on frames 1..F-2 [modal units / s^2]."""
+def dynamics_residual(Z, eigenvalues, damping, h, scheme="central", external=None):
+    """(F-2, r) residual of the modal equation of motion on frames 1..F-2 [modal units / s^2]:
+    the control force. external (F, r): known modal forces per frame (e.g. a rig's loads,
+    ``rig.RigLoad.modal_forces``), which need no control: subtracted on frames 1..F-2."""
     a, b, c = stencil(eigenvalues, damping, h, scheme)
-    return a * Z[:-2] + b * Z[1:-1] + c * Z[2:]
+    R = a * Z[:-2] + b * Z[1:-1] + c * Z[2:]
+    return R if external is None else R - np.asarray(external)[1:-1]
 
 
-def control_energy(Z, eigenvalues, damping, h, scheme="central"):
+def control_energy(Z, eigenvalues, damping, h, scheme="central", external=None):
     """E_f(Z) = 1/2 |dynamics_residual|^2 (float)."""
-    return 0.5 * float(np.sum(dynamics_residual(Z, eigenvalues, damping, h, scheme) ** 2))
+    return 0.5 * float(np.sum(dynamics_residual(Z, eigenvalues, damping, h, scheme,
+                                                external) ** 2))
 
 
-def control_energy_gradient(Z, eigenvalues, damping, h, scheme="central"):
-    """dE_f/dZ (F, r): the stencil transposed applied to the residual."""
+def control_energy_gradient(Z, eigenvalues, damping, h, scheme="central", external=None):
+    """dE_f/dZ (F, r): the stencil transposed applied to the residual (the Hessian, its bands,
+    does not depend on ``external``)."""
     a, b, c = stencil(eigenvalues, damping, h, scheme)
-    R = dynamics_residual(Z, eigenvalues, damping, h, scheme)
+    R = dynamics_residual(Z, eigenvalues, damping, h, scheme, external)
     G = np.zeros_like(Z, dtype=np.float64)
     G[:-2] += a * R
     G[1:-1] += b * R
@@ -511,7 +522,8 @@ def _has(constraints):
 
 def objective_terms(problem, Z, eigenvalues, damping, S, mu):
     """(E_f, gamma E_c, E_k, mu E_s) as floats."""
-    e_f = control_energy(Z, eigenvalues, damping, problem.h, problem.scheme)
+    e_f = control_energy(Z, eigenvalues, damping, problem.h, problem.scheme,
+        problem.external_forces)
     e_c = (0.5 * float(np.sum(_handle_terms(problem, Z, S, False)[0] ** 2))
            if _has(problem.handles) else 0.0)
     e_k = (0.5 * float(np.sum(_keyframe_terms(problem, Z, S) ** 2))
@@ -552,7 +564,8 @@ def normal_equations(problem, Z, eigenvalues, damping, S):
 def _linearise(problem, Z, eigenvalues, damping, S):
     """(ab, g, handle residuals (c, 3) or None, their Jacobians in z (c, 3, r) or None)."""
     F, r, s = problem.frames, problem.num_modes, problem.first_free
-    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme)
+    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme,
+        problem.external_forces)
     blocks = np.zeros((F, r, r))
     res = Jz = None
     if _has(problem.handles):
@@ -796,7 +809,8 @@ def sampling_objective(problem, Z, S, mu):
 
 def z_gradient(problem, Z, eigenvalues, damping, S):
     """dJ/dZ (F, r) at fixed material and S (E_f, handles and keyframes; E_s does not see Z)."""
-    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme)
+    grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme,
+        problem.external_forces)
     if _has(problem.handles):
         res, Jx = _handle_terms(problem, Z, S, True)
         np.add.at(grad, problem.handles.frames, np.einsum("cdm,cd,mr->cr", Jx, res, S))
@@ -827,7 +841,8 @@ def carried_objective(problem, Z, S, eigenvalues, damping, mu, S_new):
     first = problem.first_free
     Zc = carried_z(problem, Z, S, S_new)
     value, grad_s = sampling_objective(problem, Zc, S_new, mu)
-    value += control_energy(Zc, eigenvalues, damping, problem.h, problem.scheme)
+    value += control_energy(Zc, eigenvalues, damping, problem.h, problem.scheme,
+        problem.external_forces)
     G = z_gradient(problem, Zc, eigenvalues, damping, S_new)[first:]            # (n, r)
     gram_inv = np.linalg.pinv(S_new.T @ S_new)      # (r, r); pinv: L-BFGS may try a singular S
     P = gram_inv @ S_new.T                                                      # (r, m)
@@ -892,6 +907,9 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
     gn_cap = 50 if iterations is None or optimise_material else int(iterations)
     if continuation:
         _warm_start(state, gn_cap, tolerance, callback, should_cancel)
+    if optimise_material and problem.external_forces is not None:
+        raise ValueError("material optimisation with external forces (a rig's loads) is not "
+                         "supported: the forces are in the prepared modes' coordinates")
     if not optimise_material:
         done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
         return _result(state, done, "converged" if done else
@@ -972,7 +990,8 @@ def _choose_weights(state):
     of the unknowns.
     """
     problem = state.problem
-    e_f = control_energy(state.Z, state.eigenvalues, state.damping, problem.h, problem.scheme)
+    e_f = control_energy(state.Z, state.eigenvalues, state.damping, problem.h, problem.scheme,
+        problem.external_forces)
     per_mode = e_f / problem.num_modes
     if problem.mu is None:
         state.mu = MU_RELATIVE * per_mode if e_f > 0.0 else 1.0
@@ -992,7 +1011,8 @@ def _result(state, converged, reason):
         Z=state.Z, eigenvalues=state.eigenvalues, damping=state.damping, sampling=state.S,
         objective=state.value,
         control_energy=control_energy(state.Z, state.eigenvalues, state.damping, problem.h,
-                                      problem.scheme),
+                                      problem.scheme,
+        problem.external_forces),
         handle_residuals=handle_residuals(problem, state.Z, state.S),
         keyframe_residuals=key_res, history=state.history, iterations=state.iterations,
         converged=bool(converged), mu=state.mu, scheme=problem.scheme, reason=reason,

@@ -1,0 +1,149 @@
+"""Flesh on a rig: elastic motion as a deviation from linear blend skinning (issue 13).
+
+A skinned body's rest trajectory is its rig's motion. Node i of the tet mesh, with skinning
+weights w_ib over the bones (rows summing to 1), is carried to the world by the affine map
+A_i(t) = sum_b w_ib T_b(t), T_b (3, 4) bone b's world-from-rest transform. The elastic motion is
+a deviation u (N, 3) in the REST space, skinned with the body: x_i(t) = A_i(t) (X_i + u_i).
+This is exactly what Blender's Armature modifier does to a shape-key bake (shape keys act
+before every modifier), and large bone rotations stay rotations because the skinning carries
+them; the deviation itself is solved by the reduced RS dynamics (``dynamics.Simulation``) in a
+fixed frame, with the pinned (Follow Rig) nodes zero in the basis, so they move exactly with
+the bones.
+
+Loads (first order in u): in node i's skinned frame the flesh feels gravity and the inertia of
+the rig's acceleration, a d'Alembert force pulled back through L_i = sum_b w_ib R_b (R_b the
+linear part of T_b): f_i = m_i L_i^T (g - a_i), a_i = sum_b w_ib Tdd_b [X_i; 1]. Velocity
+(Coriolis) and centrifugal terms in u are left out, as is the change of L_i over a step.
+In the basis, f_q = B^T f (rB,); ``RigLoad`` precomputes mass moments per bone and per
+overlapping bone pair so a step costs O(pairs x rB), never a pass over the nodes.
+
+Shapes and units: X (N, 3) rest nodes [m]; weights (N, b); transforms (F, b, 3, 4) [m];
+times (F,) [s], uniform; masses (N,) [kg]; B (3N, rB), node-major rows; g (3,) [m/s^2].
+"""
+import igl
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+def node_weights(embedding, vertex_weights, X, T):
+    """(N, b) skinning weights of the tet nodes from the render vertices' (n, b).
+
+    embedding: Phi (n, N) sparse, render vertices = Phi X (barycentric rows). Nodes carrying
+    embedding weight get the Phi^T-weighted average of their vertices' weights; the others (deep
+    inside) the harmonic extension of those (cotangent Laplacian of the tets, the carried nodes
+    fixed). Rows are clipped at 0 and normalised to sum 1; a node whose weights are all zero
+    stays zero (no bone moves it; the caller gives such vertices an identity "bone").
+    """
+    Phi = sp.csr_matrix(embedding)
+    W = np.asarray(vertex_weights, dtype=np.float64)
+    N = Phi.shape[1]
+    carried = np.asarray(abs(Phi).sum(axis=0)).ravel()                      # (N,)
+    known = carried > 1e-12
+    out = np.zeros((N, W.shape[1]))
+    out[known] = (Phi.T @ W)[known] / carried[known, None]
+    if not known.all():
+        L = sp.csr_matrix(igl.cotmatrix(np.asarray(X, dtype=np.float64),
+                                        np.asarray(T, dtype=np.int64)))
+        free = np.flatnonzero(~known)
+        fixed = np.flatnonzero(known)
+        A = -L[free][:, free]
+        rhs = L[free][:, fixed] @ out[fixed]
+        out[free] = spla.splu(A.tocsc()).solve(np.ascontiguousarray(rhs))
+    out = np.maximum(out, 0.0)
+    total = out.sum(axis=1)
+    moved = total > 1e-12
+    out[moved] /= total[moved, None]
+    return out
+
+
+class RigMotion:
+    """Bones' world-from-rest transforms sampled at uniform times, and their accelerations.
+
+    times (F,) [s] uniform (F >= 2); transforms (F, b, 3, 4). Between samples the transforms
+    and the accelerations are interpolated linearly; outside the range they are held (the rig
+    stands still before and after). Accelerations at the samples are central second
+    differences (T_{f+1} - 2 T_f + T_{f-1}) / h^2, so a bone keyed to stop dead at frame f
+    decelerates over the frames around f; the end samples take their neighbour's value.
+    """
+
+    def __init__(self, times, transforms):
+        self.times = np.asarray(times, dtype=np.float64)
+        self.transforms = np.asarray(transforms, dtype=np.float64)
+        if len(self.times) < 2 or self.transforms.shape[0] != len(self.times):
+            raise ValueError("a rig motion needs at least two samples, one transform set each")
+        self.h = float(self.times[1] - self.times[0])
+        acc = np.zeros_like(self.transforms)
+        if len(self.times) >= 3:
+            acc[1:-1] = (self.transforms[2:] - 2.0 * self.transforms[1:-1]
+                         + self.transforms[:-2]) / self.h ** 2
+            acc[0], acc[-1] = acc[1], acc[-2]
+        self.accelerations = acc
+
+    def _blend(self, samples, t):
+        u = np.clip((float(t) - self.times[0]) / self.h, 0.0, len(self.times) - 1.0)
+        k = min(int(np.floor(u)), len(self.times) - 2)
+        f = u - k
+        return (1.0 - f) * samples[k] + f * samples[k + 1]
+
+    def at(self, t):
+        """(b, 3, 4) transforms at time t [s]."""
+        return self._blend(self.transforms, t)
+
+    def acceleration(self, t):
+        """(b, 3, 4) second time derivative of the transforms at t [1/s^2]."""
+        return self._blend(self.accelerations, t)
+
+    def skin(self, t, weights, points):
+        """(k, 3) world positions of rest points (k, 3) with weights (k, b) at time t."""
+        A = np.einsum("kb,bij->kij", np.asarray(weights, dtype=np.float64), self.at(t))
+        return np.einsum("kij,kj->ki", A[:, :, :3], np.asarray(points)) + A[:, :, 3]
+
+
+class RigLoad:
+    """The generalised force B^T f(t) (rB,) of a rig's loads on its flesh (module docstring).
+
+    motion: ``RigMotion``; weights (N, b) node skinning weights (``node_weights``); masses
+    (N,) [kg]; basis B (3N, rB) (zero on pinned DOFs); gravity (3,) world [m/s^2].
+    Precomputed: per bone c, G_c = sum_i m_i w_ic B_i^T (rB, 3); per bone pair (c, b) whose
+    weights overlap, H_cb = sum_i m_i w_ic w_ib B_i^T [X_i; 1]^T (rB, 3, 4). Then
+    f_q(t) = sum_c G_c R_c^T g - sum_cb H_cb : (R_c^T Tdd_b).
+    """
+
+    def __init__(self, motion, weights, masses, basis, X, gravity=(0.0, 0.0, -9.81)):
+        self.motion = motion
+        W = np.asarray(weights, dtype=np.float64)
+        m = np.asarray(masses, dtype=np.float64)
+        B3 = np.asarray(basis, dtype=np.float64).reshape(len(m), 3, -1)      # (N, 3, rB)
+        Xh = np.c_[np.asarray(X, dtype=np.float64), np.ones(len(m))]         # (N, 4)
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        self.gravity_moments = np.einsum("ic,ikr->ckr", m[:, None] * W, B3)  # (b, 3, rB)
+        pairs, moments = [], []
+        for c in range(W.shape[1]):
+            for b in range(W.shape[1]):
+                share = m * W[:, c] * W[:, b]
+                nodes = np.flatnonzero(share)
+                if len(nodes):
+                    pairs.append((c, b))
+                    moments.append(np.einsum("i,ikr,il->rkl", share[nodes], B3[nodes],
+                                             Xh[nodes]))
+        self.pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+        self.pair_moments = (np.array(moments) if moments
+                             else np.zeros((0, B3.shape[2], 3, 4)))          # (P, rB, 3, 4)
+
+    def force(self, t):
+        """(rB,) generalised force at time t [s]."""
+        T = self.motion.at(t)                                                 # (b, 3, 4)
+        R = T[:, :, :3]
+        out = np.einsum("ckr,ck->r", self.gravity_moments, R.transpose(0, 2, 1) @ self.gravity)
+        if len(self.pairs):
+            acc = self.motion.acceleration(t)
+            c, b = self.pairs[:, 0], self.pairs[:, 1]
+            pulled = np.einsum("pjk,pjl->pkl", R[c], acc[b])                  # R_c^T Tdd_b
+            out -= np.einsum("prkl,pkl->r", self.pair_moments, pulled)
+        return out
+
+    def modal_forces(self, times, jacobian):
+        """(len(times), m) f_q(t) @ J for a fixed (rB, m) Jacobian (e.g. dq/dz at rest)."""
+        return np.array([self.force(t) for t in np.asarray(times, dtype=np.float64)]) @ \
+            np.asarray(jacobian, dtype=np.float64)
