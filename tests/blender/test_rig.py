@@ -22,7 +22,7 @@ def prepared_creature():
     settings = obj.rs_elastic
     settings.pin_group = "Follow Rig"
     settings.edge_length, settings.num_modes = 0.06, 12
-    settings.youngs_modulus, settings.density = 3.0e4, 1000.0       # soft flesh: it jiggles
+    settings.youngs_modulus, settings.density = 3.0e5, 1000.0       # soft flesh: it jiggles
     settings.damping_mass, settings.damping_stiffness = 0.0, 0.002
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 36
     make_active(obj)
@@ -73,7 +73,8 @@ def test_a_rigged_creature_simulates_on_its_rig_and_keeps_the_users_animation(ex
     swing = np.abs(lag).max()
     print(f"ear tip deviation: largest {swing:.3f} m; belly {np.abs(baked - rigged).max():.3f} m")
     assert swing > 0.01
-    assert np.any(np.diff(np.sign(forward[10:])) != 0)       # it rings after the stop
+    settled = forward[10:] - forward[-8:].mean()        # about where gravity lets it hang
+    assert np.any(np.diff(np.sign(settled)) != 0)       # it rings after the stop
     # Volume of the whole creature, rig plus flesh, stays that of the rest shape.
     volume = np.array([closed_volume(obj, p) for p in baked]) / closed_volume(obj, rigged[0])
     print(f"volume ratio {volume.min():.4f}-{volume.max():.4f}")
@@ -92,12 +93,13 @@ def test_a_rigged_body_needs_its_follow_group(ext):
 
 def test_command_line_bakes_a_rigged_creature_from_a_saved_file(ext, tmp_path):
     obj, rig = prepared_creature()
+    name = obj.name
     blend = tmp_path / "critter.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    result = run_cli(blend, ["bake", "--mode", "simulate", "--object", obj.name])
+    result = run_cli(blend, ["bake", "--mode", "simulate", "--object", name])
     assert result.returncode == 0, result.stdout + result.stderr
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    obj = bpy.data.objects[obj.name]
+    obj = bpy.data.objects[name]
     assert ext.bridge.bake.bake_frames(obj) == list(range(1, 37))
 
 
@@ -135,7 +137,7 @@ def test_a_space_time_edit_puts_an_ear_on_its_empty_while_the_body_follows_the_r
     assert bpy.ops.rs_elastic.add_handle(vertex_group="Ear Tip") == {'FINISHED'}
     empty = obj.rs_elastic.handles[0].empty
     bpy.context.scene.frame_set(20)
-    target = world(obj, evaluated_vertices(obj)[tip]).mean(axis=0) + (0.0, -0.1, 0.0)
+    target = world(obj, evaluated_vertices(obj)[tip]).mean(axis=0) + (0.08, 0.0, 0.0)
     empty.location = tuple(target)
     empty.keyframe_insert("location", frame=20)
     make_active(obj)
