@@ -830,6 +830,71 @@ def ring_table(ring, softbody):
     return "\n".join(lines) + "\n"
 
 
+def case_rig(arg, frames=240, num_modes=20):
+    """A 240-frame shot of a ~30k-tet bar skinned to 3 bones (issue 13): the bones turn and
+    stop; the flesh past the first bone is free. Prepare (modes, default reduced RS, node
+    weights, the rig load's moments) and the simulation loop are timed apart."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+    from solver import dynamics, fem, inversion, materials, meshgen, modes, reduced, rig, rs
+    X, T = meshgen.box_tet_mesh((3.0, 0.5, 0.5), (54, 10, 10))             # 32,400 tets
+    h = 1.0 / 24.0
+    start = time.perf_counter()
+    masses = fem.lumped_masses(X, T, 1000.0)
+    pinned = np.flatnonzero(X[:, 0] < 1.0 + 1e-9)              # bone 1's segment follows
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 5e5, 0.45), masses, num_modes, pinned)
+    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
+    recon = rs.PoissonReconstruction(X, T, pinned)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
+                                             recon, modal_rs=modal_rs)
+    mu, lam = fem.lame_parameters(5e5, 0.45)
+    volumes = np.abs(fem.tet_volumes(X, T))
+    potential = inversion.with_barrier(
+        materials.prepare_potential(materials.Linear(mu, lam), modal_rs, volumes)[0], modal_rs,
+        volumes)
+    centres = np.array([0.5, 1.5, 2.5])
+    weights = np.maximum(0.0, 1.0 - np.abs(X[:, :1] - centres[None]))      # blended bones
+    weights /= weights.sum(axis=1)[:, None]
+    times = np.arange(frames) * h
+    transforms = np.zeros((frames, 3, 3, 4))
+    for b, (joint, degrees) in enumerate(((0.0, 0.0), (1.0, 40.0), (2.0, 60.0))):
+        fraction = np.clip((np.arange(frames) - 10) / 12.0, 0.0, 1.0)      # turn, then stop
+        R = Rotation.from_rotvec(np.radians(degrees) * fraction[:, None] * [0, 0, 1]).as_matrix()
+        pivot = np.array([joint, 0.25, 0.25])
+        transforms[:, b, :, :3] = R
+        transforms[:, b, :, 3] = pivot - R @ pivot
+    load = rig.RigLoad(rig.RigMotion(times, transforms), weights, masses, deformer.basis, X,
+                       gravity=(0.0, 0.0, -9.81))
+    simulation = dynamics.Simulation(deformer, X, masses, potential, h, gravity=np.zeros(3),
+                                     external_force=load.force, tets=T)
+    prepare_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    simulation.run(frames - 1)
+    seconds = time.perf_counter() - start
+    return dict(tets=len(T), nodes=len(X), modes=num_modes, frames=frames, bones=3,
+                basis_size=deformer.basis_size, load_pairs=len(load.pairs),
+                substeps=simulation.substeps, prepare_seconds=prepare_seconds,
+                seconds=seconds, frames_per_second=(frames - 1) / seconds,
+                peak_rss_mb=peak_rss_mb())
+
+
+def rig_table(row):
+    lines = ["## A rig shot: 240 frames of a 3-bone skinned bar (issue 13; target < 10 s)", "",
+             "| tets | modes | rB | bone pairs | substeps | prepare s | shot s | frames/s "
+             "| peak RSS MB |", "|" + "---|" * 9]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        lines.append(f"| {row['tets']:,} | {row['modes']} | {row['basis_size']} "
+                     f"| {row['load_pairs']} | {row['substeps']} | {row['prepare_seconds']:.1f} "
+                     f"| {row['seconds']:.1f} | {row['frames_per_second']:.0f} "
+                     f"| {row['peak_rss_mb']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+CASES["rig"] = case_rig
+
+
 def run_mesh_cache_shot(frames=1000, cuts=90):
     """A 1,000-frame simulate-and-bake of a ~50k-vertex bar to a Mesh Cache, in Blender with the
     extension installed from its zip (bench/mesh_cache_shot.py, its own process)."""
@@ -949,6 +1014,9 @@ def main():
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + softbody_table(results["softbody"], results["dynamics"])
     text += "\n" + ring_table(results["ring"], results["softbody_ring"])
+    results["rig"] = run_child("rig", "240")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + rig_table(results["rig"])
     results["prepare_dense"] = run_child("prepare_dense", "4")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + prepare_dense_table(results["prepare_dense"])
