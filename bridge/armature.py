@@ -136,7 +136,8 @@ def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
     weights = rig.node_weights(tools.embedding, vertex_weights(obj, bones), tools.nodes,
                                tools.tets)
     motion = rig.RigMotion((np.array(frames) - frames[0]) * h, transforms)
-    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, gravity=gravity)
+    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, tools.nodes,
+                       gravity=gravity)
 
 
 def rest_targets(obj, blender_scene, frames, tracks):
