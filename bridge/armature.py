@@ -18,6 +18,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import rig
+from . import scene
 from .scene import InputError
 
 
@@ -158,3 +159,16 @@ def rest_targets(obj, blender_scene, frames, tracks):
         out.append(dataclasses.replace(track, targets=rest, rotation_frames=None,
                                        rotations=None))
     return out
+
+
+def held_by_follow_weights(obj, tools, masses, potential):
+    """``potential`` plus the springs of the Follow Rig weights between 0 and the pin threshold
+    (``solver.rig.follow_stiffness``, stiffest at the body's fastest mode), or ``potential``
+    itself when the group paints only 0 and pins."""
+    weights = scene.group_weights(obj, obj.rs_elastic.pin_group)
+    if not np.any((weights > 0.0) & (weights < rig.PIN_THRESHOLD)):
+        return potential
+    follow = rig.node_values(tools.embedding, weights, tools.nodes, tools.tets)[:, 0]
+    omega = float(np.sqrt(np.max(tools.body.linear_modes.eigenvalues)))
+    stiffness = rig.follow_stiffness(follow, masses, tools.deformer.basis, omega)
+    return rig.HeldPotential(potential, tools.deformer, stiffness)

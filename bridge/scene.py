@@ -155,3 +155,18 @@ def vertex_group_mask(obj, group_name):
                for g in v.groups if g.group == index and g.weight > 0.0]
     mask[members] = True
     return mask
+
+
+def group_weights(obj, group_name):
+    """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it).
+    Blender has no bulk accessor for group weights, so this walks the memberships once."""
+    group = obj.vertex_groups.get(group_name)
+    if group is None:
+        raise InputError(f"Vertex group '{group_name}' does not exist on '{obj.name}'")
+    index = group.index
+    weights = np.zeros(len(obj.data.vertices))
+    for v in obj.data.vertices:
+        for g in v.groups:
+            if g.group == index:
+                weights[v.index] = g.weight
+    return weights

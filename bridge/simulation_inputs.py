@@ -164,6 +164,7 @@ def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
     load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
+    potential = armature.held_by_follow_weights(obj, tools, masses, potential)
     simulation = dynamics.Simulation(
         tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
         mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,

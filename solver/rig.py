@@ -26,17 +26,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 
-def node_weights(embedding, vertex_weights, X, T):
-    """(N, b) skinning weights of the tet nodes from the render vertices' (n, b).
-
-    embedding: Phi (n, N) sparse, render vertices = Phi X (barycentric rows). Nodes carrying
-    embedding weight get the Phi^T-weighted average of their vertices' weights; the others (deep
-    inside) the harmonic extension of those (cotangent Laplacian of the tets, the carried nodes
-    fixed). Rows are clipped at 0 and normalised to sum 1; a node whose weights are all zero
-    stays zero (no bone moves it; the caller gives such vertices an identity "bone").
-    """
+def node_values(embedding, vertex_values, X, T):
+    """(N, k) fields of the render vertices' (n, k) carried to the tet nodes: the Phi^T-weighted
+    average where nodes carry embedding weight, the harmonic extension (cotangent Laplacian of
+    the tets, those nodes fixed) inside. Exact for fields linear in space."""
     Phi = sp.csr_matrix(embedding)
-    W = np.asarray(vertex_weights, dtype=np.float64)
+    W = np.asarray(vertex_values, dtype=np.float64).reshape(Phi.shape[0], -1)
     N = Phi.shape[1]
     carried = np.asarray(abs(Phi).sum(axis=0)).ravel()                      # (N,)
     known = carried > 1e-12
@@ -45,12 +40,21 @@ def node_weights(embedding, vertex_weights, X, T):
     if not known.all():
         L = sp.csr_matrix(igl.cotmatrix(np.asarray(X, dtype=np.float64),
                                         np.asarray(T, dtype=np.int64)))
-        free = np.flatnonzero(~known)
-        fixed = np.flatnonzero(known)
-        A = -L[free][:, free]
+        free, fixed = np.flatnonzero(~known), np.flatnonzero(known)
         rhs = L[free][:, fixed] @ out[fixed]
-        out[free] = spla.splu(A.tocsc()).solve(np.ascontiguousarray(rhs))
-    out = np.maximum(out, 0.0)
+        out[free] = spla.splu((-L[free][:, free]).tocsc()).solve(np.ascontiguousarray(rhs))
+    return out
+
+
+def node_weights(embedding, vertex_weights, X, T):
+    """(N, b) skinning weights of the tet nodes from the render vertices' (n, b).
+
+    embedding: Phi (n, N) sparse, render vertices = Phi X (barycentric rows); the weights are
+    carried to the nodes by ``node_values``. Rows are clipped at 0 and normalised to sum 1; a
+    node whose weights are all zero
+    stays zero (no bone moves it; the caller gives such vertices an identity "bone").
+    """
+    out = np.maximum(node_values(embedding, vertex_weights, X, T), 0.0)
     total = out.sum(axis=1)
     moved = total > 1e-12
     out[moved] /= total[moved, None]
@@ -147,3 +151,67 @@ class RigLoad:
         """(len(times), m) f_q(t) @ J for a fixed (rB, m) Jacobian (e.g. dq/dz at rest)."""
         return np.array([self.force(t) for t in np.asarray(times, dtype=np.float64)]) @ \
             np.asarray(jacobian, dtype=np.float64)
+
+
+PIN_THRESHOLD = 0.5   # follow weights from this up are pins (the body's pin rule)
+
+
+def follow_stiffness(follow, masses, basis, omega_hold):
+    """(rB, rB) stiffness K_f = B^T diag(k) B of the springs that hold partly-following nodes.
+
+    follow (N,) Follow Rig weights of the nodes (``node_values`` of the vertex group): 0 is
+    free flesh, from ``PIN_THRESHOLD`` up a node is pinned (zero in B). In between, node i is
+    held to its skinned place by a spring k_i = m_i omega_hold^2 w/(1 - w) [N/m]: its own
+    frequency on the spring rises from 0 with the weight to omega_hold [rad/s] at the pin
+    threshold (e.g. the body's fastest mode, so the step to a pin is a small one).
+    """
+    w = np.clip(np.asarray(follow, dtype=np.float64), 0.0, PIN_THRESHOLD)
+    k = np.where(w < PIN_THRESHOLD, np.asarray(masses) * omega_hold ** 2 * w / (1.0 - w), 0.0)
+    B3 = np.asarray(basis, dtype=np.float64).reshape(len(w), 3, -1)
+    held = np.flatnonzero(k > 0.0)
+    return np.einsum("i,ikr,iks->rs", k[held], B3[held], B3[held])
+
+
+class HeldPotential:
+    """A reduced potential (``materials.ReducedPotential`` or a ``BarrierPotential``) plus the
+    follow springs 1/2 q(s)^T K_f q(s) of a deformer (rest space: q = 0 is the skinned pose).
+
+    evaluate(s, order) -> (V [J], grad (m,), Hessian (m, m), Gauss-Newton J^T K_f J for the
+    springs); ``rest_hessian`` includes J0^T K_f J0, so Rayleigh stiffness damping and the
+    automatic substeps see the springs. Other attributes are the wrapped potential's.
+    """
+
+    is_quadratic = False
+
+    def __init__(self, potential, deformer, stiffness):
+        self.potential, self.deformer = potential, deformer
+        self.stiffness = np.asarray(stiffness, dtype=np.float64)
+        self.num_coords = potential.num_coords
+        J0 = np.asarray(deformer.q_jacobian(np.zeros(self.num_coords)))
+        self.rest_hessian = potential.rest_hessian + J0.T @ self.stiffness @ J0
+
+    def __getattr__(self, name):            # only called for attributes not found above
+        if name in ("potential", "deformer", "stiffness"):
+            raise AttributeError(name)
+        return getattr(self.potential, name)
+
+    def evaluate(self, s, order=2):
+        energy, grad, hess = self.potential.evaluate(s, order)
+        q = np.asarray(self.deformer.q(s))
+        Kq = self.stiffness @ q
+        energy = energy + 0.5 * float(q @ Kq)
+        if order >= 1:
+            J = np.asarray(self.deformer.q_jacobian(s))
+            grad = grad + J.T @ Kq
+            if order >= 2:
+                hess = hess + J.T @ self.stiffness @ J
+        return energy, grad, hess
+
+    def energy(self, s):
+        return self.evaluate(s, 0)[0]
+
+    def gradient(self, s):
+        return self.evaluate(s, 1)[1]
+
+    def hessian(self, s):
+        return self.evaluate(s, 2)[2]

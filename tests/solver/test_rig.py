@@ -228,3 +228,42 @@ def test_a_bone_turned_150_degrees_in_5_frames_keeps_volume_and_inverts_nothing(
     assert np.abs(ratio - 1.0).max() < 0.03
     assert (volumes / fem.tet_volumes(X, T)).min() > 0.0
     assert np.abs(u).max() > 1e-3
+
+
+# Partly-following flesh: springs to the skinned pose (rig.follow_stiffness, rig.HeldPotential)
+
+def test_follow_springs_hold_the_flesh_as_their_stiffness_says():
+    """Linear modes (q = s, B = W), exact linear potential: the static sag under gravity with
+    the springs is the solution of (H + W^T K_f W) s = W^T M g (a direct solve); weight 0 adds
+    nothing; the spring matrix is B^T diag(k) B with k = m omega^2 w / (1 - w) node by node."""
+    from solver import materials, modes, reduced, rs
+    X, T = meshgen.box_tet_mesh((1.0, 0.1, 0.1), (10, 1, 1))
+    masses = fem.lumped_masses(X, T, 1000.0)
+    pins = np.flatnonzero(X[:, 0] < 1e-9)
+    result = modes.linear_modes(fem.stiffness_matrix(X, T, 2e5, 0.3), masses, 6, pins)
+    W = result.vectors
+    deformer = reduced.LinearDeformer(6, W)
+    mu, lam = fem.lame_parameters(2e5, 0.3)
+    potential = materials.ReducedPotential.exact(materials.Linear(mu, lam),
+                                                 rs.linear_rs(rs.rs_operator(X, T), W),
+                                                 fem.tet_volumes(X, T))
+    follow = np.clip(X[:, 0], 0.0, 0.4)                 # stiffer springs towards the tip
+    omega = float(np.sqrt(result.eigenvalues[-1]))
+    K_f = rig.follow_stiffness(follow, masses, W, omega)
+    k = masses * omega ** 2 * follow / (1.0 - follow)
+    expected = W.T @ (np.repeat(k, 3)[:, None] * W)
+    np.testing.assert_allclose(K_f, expected, rtol=1e-10, atol=1e-12 * np.abs(expected).max())
+    assert np.abs(rig.follow_stiffness(np.zeros(len(X)), masses, W, omega)).max() == 0.0
+    g = np.array([0.0, 0.0, -9.81])
+    held = rig.HeldPotential(potential, deformer, K_f)
+    sags = []
+    for pot in (potential, held):
+        simulation = dynamics.Simulation(deformer, X, masses, pot, H, gravity=g)
+        sags.append(simulation.static_equilibrium())
+    load = W.T @ (np.repeat(masses, 3) * np.tile(g, len(X)))
+    np.testing.assert_allclose(sags[1], np.linalg.solve(potential.rest_hessian + K_f, load),
+                               rtol=1e-6)
+    np.testing.assert_allclose(held.rest_hessian, potential.rest_hessian + K_f, rtol=1e-12)
+    print(f"tip sag {np.abs(W @ sags[0]).max():.4f} m free, {np.abs(W @ sags[1]).max():.4f} m "
+          "held")
+    assert np.abs(W @ sags[1]).max() < 0.5 * np.abs(W @ sags[0]).max()
