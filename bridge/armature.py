@@ -98,6 +98,31 @@ def vertex_weights(obj, bones):
     return weights
 
 
+def selected_bones(rig):
+    """Names of the armature object's selected bones (the selection lives on the pose bones
+    from Blender 5.0, on the bones before)."""
+    pose = rig.pose.bones
+    return [bone.name for bone in rig.data.bones
+            if (pose[bone.name].select if hasattr(pose[bone.name], "select") else bone.select)]
+
+
+def select_bones(rig, names):
+    """Select exactly ``names`` among the armature's bones (either Blender's way)."""
+    for bone in rig.data.bones:
+        target = rig.pose.bones[bone.name] if hasattr(rig.pose.bones[bone.name], "select") \
+            else bone
+        target.select = bone.name in names
+
+
+def bone_group_weights(obj, bones):
+    """(n,) sum over ``bones`` of the vertices' weights in their vertex groups, at most 1."""
+    index = {obj.vertex_groups[name].index for name in bones}
+    weights = np.zeros(len(obj.data.vertices))
+    for v in obj.data.vertices:          # Blender has no bulk accessor for group weights
+        weights[v.index] = sum(g.weight for g in v.groups if g.group in index)
+    return np.minimum(weights, 1.0)
+
+
 def bone_transforms(obj, bones, blender_scene, frames):
     """(F, b + 1, 3, 4) world-from-rest affine transforms per frame: each bone's, then the
     object's own (for vertices no bone moves). The Armature modifier maps rest point X of the

@@ -33,6 +33,7 @@ class RS_ELASTIC_PT_material(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "density", text="Density (kg/m³)")
         if armature.is_rigged(obj):       # on a rig the pins are what follows the bones
             layout.prop_search(settings, "pin_group", obj, "vertex_groups", text="Follow Rig")
+            layout.operator("rs_elastic.follow_bones", icon='BONE_DATA')
             layout.label(text=f"Rigged by '{armature.armature_modifier(obj).object.name}': "
                               "the rest is free flesh", icon='ARMATURE_DATA')
         else:

@@ -176,3 +176,25 @@ def test_follow_weights_below_the_pin_threshold_hold_the_flesh_partly(ext):
         deviations.append(np.linalg.norm(baked[:, belly] - rigged[:, belly], axis=2).max())
     print(f"belly lag: free {deviations[0]:.4f} m, Follow Rig 0.3 {deviations[1]:.4f} m")
     assert 1e-4 < deviations[1] < 0.7 * deviations[0]
+
+
+def test_follow_selected_bones_makes_the_follow_group_from_their_weights(ext):
+    """Oracle: the creature's vertex groups. Selecting Body gives weight 1 on the body sphere
+    and nothing on the ears; nothing selected, or an unrigged mesh, is refused unchanged."""
+    obj, rig = creature.build(bpy, np)
+    make_active(obj)
+    ext.bridge.armature.select_bones(rig, [])
+    with pytest.raises(RuntimeError, match="Select the bones"):
+        bpy.ops.rs_elastic.follow_bones()
+    assert obj.rs_elastic.pin_group == ""
+    ext.bridge.armature.select_bones(rig, ["Body"])
+    assert bpy.ops.rs_elastic.follow_bones() == {'FINISHED'}
+    assert obj.rs_elastic.pin_group == "Follow Rig"
+    weights = ext.bridge.scene.group_weights(obj, "Follow Rig")
+    body = ext.bridge.scene.group_weights(obj, "Body")
+    np.testing.assert_array_equal(weights, body)
+    ears = ext.bridge.scene.group_weights(obj, "Ear.L") > 0
+    assert weights.max() == 1.0 and weights[ears].max() == 0.0
+    bpy.ops.mesh.primitive_cube_add()
+    with pytest.raises(RuntimeError, match="no Armature modifier"):
+        bpy.ops.rs_elastic.follow_bones()
