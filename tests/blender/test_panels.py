@@ -86,3 +86,16 @@ def test_panels_show_counts_frequencies_and_mnf(ext):
 def test_panel_without_a_mesh_says_so(ext):
     bpy.ops.object.camera_add()
     assert ("label", "Select a mesh object") in draw_all()
+
+
+def test_a_rigged_body_shows_follow_rig_and_the_tet_estimate(ext):
+    import numpy as np
+    import creature
+    obj, rig = creature.build(bpy, np)
+    bpy.context.view_layer.objects.active = obj
+    log = draw_all()
+    assert ("operator", "rs_elastic.follow_bones") in log
+    labels = [text for kind, text in log if kind == "label"]
+    assert any("Rigged by 'Critter Rig'" in text for text in labels)
+    triangles = sum(len(p.vertices) - 2 for p in obj.data.polygons)
+    assert any(f"fTetWild meshes {triangles:,} triangles" in text for text in labels), labels
