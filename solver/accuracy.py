@@ -73,7 +73,8 @@ def target_stretch(X, T, pinned, rest_points, frames, targets):
     Bending and twisting keep the length of every path through the body, so a target farther
     from a pinned node than the shortest path from that node to the handle at rest, or two
     handles keyed on one frame farther apart than the path between them, can only be met by
-    stretching the body by at least that ratio. Paths run along tet edges (Dijkstra) from the
+    stretching the body by at least that ratio; a pair's ratio counts for the handle keyed
+    farther from its rest place (for both on a tie). Paths run along tet edges (Dijkstra) from the
     node nearest each handle, plus the gap to its centroid; they zigzag, so they are longer than
     the true in-body distance and the demand is an underestimate (a lower bound on the stretch
     needed). Returns max(ratio) - 1 per handle (negative when nothing is demanded) and the frame
@@ -106,5 +107,10 @@ def target_stretch(X, T, pinned, rest_points, frames, targets):
                                           return_indices=True)
             reach = max(paths[h, nearest[g]] + gap[g], 1e-300)
             other = np.asarray(targets[g], dtype=np.float64).reshape(-1, 3)
-            consider(h, np.linalg.norm(t[i] - other[j], axis=1) / reach, common)
+            # A pair's demand goes to the handle keyed farther from its rest place (both on a
+            # tie): a handle keyed where it rests asks nothing of the body.
+            mine = np.linalg.norm(t[i] - rest_points[h], axis=1)
+            theirs = np.linalg.norm(other[j] - rest_points[g], axis=1)
+            moved = mine >= theirs * (1.0 - 1e-9) - 1e-12           # a tie within round-off
+            consider(h, (np.linalg.norm(t[i] - other[j], axis=1) / reach)[moved], common[moved])
     return demand, worst

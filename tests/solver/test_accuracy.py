@@ -149,11 +149,16 @@ def test_a_bent_tip_target_demands_no_stretch():
 
 def test_two_handles_of_a_free_body_keyed_apart_demand_stretch_on_their_common_frames():
     """No pins: the two end handles are 4 m apart by the straight path; keyed 4.4 m apart on
-    frame 2 (both) they demand 10 %; frame 5 keys only one of them and is not compared."""
+    frame 2, each 0.2 m out, they both demand 10 %; frame 5 keys only one of them and is not
+    compared. Keyed apart with one of them at rest, only the one that moved is named."""
     X, T, _ = straight_bar()
     ends = [[0.0, 0.5, 0.5], [4.0, 0.5, 0.5]]
     frames = [[2, 5], [2]]
-    targets = [[[0.0, 0.5, 0.5], [-9.0, 0.5, 0.5]], [[4.4, 0.5, 0.5]]]
+    targets = [[[-0.2, 0.5, 0.5], [-9.0, 0.5, 0.5]], [[4.2, 0.5, 0.5]]]
     demand, frame = accuracy.target_stretch(X, T, [], ends, frames, targets)
     np.testing.assert_allclose(demand, [0.1, 0.1], atol=1e-12)
     assert frame.tolist() == [2, 2]
+    targets = [[[0.0, 0.5, 0.5], [-9.0, 0.5, 0.5]], [[4.4, 0.5, 0.5]]]
+    demand, frame = accuracy.target_stretch(X, T, [], ends, frames, targets)
+    assert demand[1] == pytest.approx(0.1, abs=1e-12) and frame[1] == 2
+    assert demand[0] < 0.0
