@@ -141,7 +141,10 @@ def test_a_space_time_edit_puts_an_ear_on_its_empty_while_the_body_follows_the_r
     empty.location = tuple(target)
     empty.keyframe_insert("location", frame=20)
     make_active(obj)
+    obj.rs_elastic.iterations = 60      # the rig's loads make a stiffer problem (see README)
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
+    converged, reason = ext.bridge.spacetime_inputs.LAST_STATUS[obj.name]
+    print(reason)
     frames = list(range(1, 37))
     baked, rigged = poses(obj, frames), rig_only(obj, frames)
     bpy.context.scene.frame_set(20)
