@@ -25,6 +25,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import materials
+
 
 def node_values(embedding, vertex_values, X, T):
     """(N, k) fields of the render vertices' (n, k) carried to the tet nodes: the Phi^T-weighted
@@ -172,7 +174,7 @@ def follow_stiffness(follow, masses, basis, omega_hold):
     return np.einsum("i,ikr,iks->rs", k[held], B3[held], B3[held])
 
 
-class HeldPotential:
+class HeldPotential(materials.PotentialAccessors):
     """A reduced potential (``materials.ReducedPotential`` or a ``BarrierPotential``) plus the
     follow springs 1/2 q(s)^T K_f q(s) of a deformer (rest space: q = 0 is the skinned pose).
 
@@ -206,12 +208,3 @@ class HeldPotential:
             if order >= 2:
                 hess = hess + J.T @ self.stiffness @ J
         return energy, grad, hess
-
-    def energy(self, s):
-        return self.evaluate(s, 0)[0]
-
-    def gradient(self, s):
-        return self.evaluate(s, 1)[1]
-
-    def hessian(self, s):
-        return self.evaluate(s, 2)[2]
