@@ -160,14 +160,15 @@ def test_a_space_time_edit_puts_an_ear_on_its_empty_while_the_body_follows_the_r
 
 
 def test_follow_weights_below_the_pin_threshold_hold_the_flesh_partly(ext):
-    """The belly painted 0.3 in Follow Rig (springs to the rig, solver.rig.follow_stiffness)
-    lags the rig less than the free belly, and still moves (it is not pinned)."""
+    """The belly painted in Follow Rig (springs to the rig, solver.rig.follow_stiffness) lags
+    the rig less the higher its weight, and still moves (it is not pinned). Oracle: the lag
+    falls monotonically with the spring, whose frequency grows as sqrt(w / (1 - w))."""
     obj, rig = prepared_creature()
     rest = vertices(obj)
     belly = rest[:, 1] < -0.25
     frames = list(range(1, 37))
     deviations = []
-    for weight in (None, 0.3):
+    for weight in (None, 0.2, 0.45):
         if weight is not None:
             obj.vertex_groups["Follow Rig"].add([int(i) for i in np.flatnonzero(belly)], weight,
                                                 'REPLACE')
@@ -177,8 +178,10 @@ def test_follow_weights_below_the_pin_threshold_hold_the_flesh_partly(ext):
         assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
         baked, rigged = poses(obj, frames), rig_only(obj, frames)
         deviations.append(np.linalg.norm(baked[:, belly] - rigged[:, belly], axis=2).max())
-    print(f"belly lag: free {deviations[0]:.4f} m, Follow Rig 0.3 {deviations[1]:.4f} m")
-    assert 1e-4 < deviations[1] < 0.7 * deviations[0]
+    print("belly lag: free {:.4f} m, Follow Rig 0.2 {:.4f} m, 0.45 {:.4f} m".format(*deviations))
+    free, light, firm = deviations
+    assert 1e-4 < firm < light < free
+    assert firm < 0.7 * free           # 0.48 to 0.5 measured
 
 
 def test_follow_selected_bones_makes_the_follow_group_from_their_weights(ext):
