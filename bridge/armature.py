@@ -166,6 +166,14 @@ def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
                        gravity=gravity)
 
 
+def skinned_placement(obj, motion, vertices):
+    """Callable t [s] -> (A (k, 3, 3), b (k, 3)): the skinning that carries base ``vertices``
+    (k,) from the rest space to the world along ``motion`` (a ``solver.rig.RigMotion`` of this
+    body's deform bones), for ``dynamics.Simulation``'s ``sample_placement``."""
+    weights = vertex_weights(obj, deform_bones(obj))[np.asarray(vertices, dtype=np.int64)]
+    return lambda t: motion.placement(t, weights)
+
+
 def rest_targets(obj, blender_scene, frames, tracks):
     """Handle tracks with their targets moved from the body's object space at each frame into
     its rest pose: through the inverse skinning of the handle (its vertices' mean bone weights),

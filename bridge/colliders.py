@@ -107,12 +107,13 @@ def scene_colliders(body, blender_scene, frames, h, world_to_sim):
 
 
 def contact_samples(rest, triangles, rows, total_mass, count):
-    """(points (k, 3), rows (3k, rB), weights (k,) [m^2], masses (k,) [kg]) of the body's
-    contact cubature: ``contact.surface_samples`` on its base mesh, each sample carrying the
-    mass share of the surface it stands for. rest (n, 3), triangles (t, 3), rows (3n, rB)."""
+    """(indices (k,) of the base vertices sampled, points (k, 3), rows (3k, rB), weights (k,)
+    [m^2], masses (k,) [kg]) of the body's contact cubature: ``contact.surface_samples`` on its
+    base mesh, each sample carrying the mass share of the surface it stands for. rest (n, 3),
+    triangles (t, 3), rows (3n, rB)."""
     indices, weights = contact.surface_samples(rest, triangles, count)
     if not weights.sum() > 0.0:
         raise InputError("the body's surface has no area to collide with")
     rows = rows.reshape(len(rest), 3, -1)[indices].reshape(3 * len(indices), -1)
     masses = total_mass * weights / weights.sum()
-    return rest[indices], rows, weights, masses
+    return indices, rest[indices], rows, weights, masses

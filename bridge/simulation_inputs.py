@@ -87,17 +87,18 @@ def potential_for(tools, settings):
 
 
 def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
-    """The body's ``contact.Contact`` against the scene's colliders, or None without any."""
+    """(the body's ``contact.Contact`` against the scene's colliders, the base vertices it
+    samples (k,)), or (None, None) without any collider."""
     if not obj.rs_elastic.use_collisions:
-        return None
+        return None, None
     found = colliders.scene_colliders(obj, blender_scene, frames, h, world_to_sim)
     if not found:
-        return None
-    points, rows, weights, masses = colliders.contact_samples(
+        return None, None
+    indices, points, rows, weights, masses = colliders.contact_samples(
         scene.base_vertices(obj), scene.base_triangles(obj), tools.surface_basis, total_mass,
         obj.rs_elastic.contact_samples)
-    return contact.Contact(found, points, rows, weights, masses,
-                           integrator=obj.rs_elastic.integrator.lower())
+    return (contact.Contact(found, points, rows, weights, masses,
+                            integrator=obj.rs_elastic.integrator.lower()), indices)
 
 
 def gather(obj, blender_scene):
@@ -138,7 +139,8 @@ def gather(obj, blender_scene):
     # A keyed body simulates in world space, a still one in its own object space.
     world_to_sim = (np.eye(4) if frame_motion is not None
                     else np.linalg.inv(np.array(obj.matrix_world)))
-    body_contact = contact_for(obj, blender_scene, tools, frames, h, world_to_sim, masses.sum())
+    body_contact, _ = contact_for(obj, blender_scene, tools, frames, h, world_to_sim,
+                                  masses.sum())
     try:
         simulation = dynamics.Simulation(
             tools.deformer, tools.nodes, masses, potential, h, gravity=gravity,
@@ -153,23 +155,28 @@ def gather(obj, blender_scene):
 
 def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     """A rigged body: its flesh simulated in rest space under the rig's loads (no frame motion,
-    gravity through the rig), baked as shape keys the Armature modifier carries."""
+    gravity through the rig), baked as shape keys the Armature modifier carries. Its contact
+    samples are skinned to the world, where the colliders are."""
     settings = obj.rs_elastic
     armature.require_follow_group(obj, len(tools.pinned_nodes) > 0)
     warnings += armature.warnings_for(obj)
-    if settings.use_collisions:
-        warnings.append(f"'{obj.name}' is rigged: its flesh does not collide (collisions are "
-                        "for unrigged bodies)")
     masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
     load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
     potential = armature.held_by_follow_weights(obj, tools, masses, potential)
-    simulation = dynamics.Simulation(
-        tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
-        mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
-        integrator=settings.integrator.lower(), substeps=settings.substeps, tets=tools.tets,
-        external_force=load.force)
+    body_contact, sampled = contact_for(obj, blender_scene, tools, frames, h, np.eye(4),
+                                        masses.sum())
+    placement = (None if body_contact is None
+                 else armature.skinned_placement(obj, load.motion, sampled))
+    try:
+        simulation = dynamics.Simulation(
+            tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
+            mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
+            integrator=settings.integrator.lower(), substeps=settings.substeps, tets=tools.tets,
+            external_force=load.force, contact=body_contact, sample_placement=placement)
+    except ValueError as exc:          # e.g. contact samples that do not fit the basis
+        raise InputError(f"'{obj.name}': {exc}") from None
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
                          scene.base_vertices(obj), False, warnings)
 

@@ -591,6 +591,10 @@ class Simulation:
       e.g. ``rig.RigLoad.force`` (a rig's accelerations and gravity felt by its flesh), added
       to gravity's B^T M g wherever that enters (each step at t_{n+1}, the start acceleration
       at t0); fixed frame only (no ``free``, no ``frame_motion``).
+    sample_placement: callable t [s] -> (A (k, 3, 3), b (k, 3)) that carries the contact
+      samples from the body's space to the world, x_p = A_p(t) Y_p + b_p, before the frame
+      (e.g. ``rig.RigMotion.placement``: the skinning of a rig's flesh, which the simulation
+      solves in rest space); None is the identity. Fixed frame only, and only with contact.
 
     The body starts at rest in its frame at s = 0 (``set_state`` changes that); a moving frame's
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
@@ -601,13 +605,19 @@ class Simulation:
     def __init__(self, deformer, rest_positions, masses, potential, h, gravity=(0.0, 0.0, 0.0),
                  mass_damping=0.0, stiffness_damping=0.0, free=False, frame_motion=None,
                  start_time=0.0, tolerance=1e-5, max_iterations=20, integrator="newmark",
-                 substeps=1, tets=None, contact=None, external_force=None):
+                 substeps=1, tets=None, contact=None, external_force=None,
+                 sample_placement=None):
         if free and frame_motion is not None:
             raise ValueError("a free body cannot also follow a prescribed frame motion")
         if external_force is not None and (free or frame_motion is not None):
             raise ValueError("an external force is for a body in a fixed frame (e.g. the "
                              "flesh of a rig, solver.rig), not a free or moving one")
         self.external_force = external_force
+        if sample_placement is not None and (free or frame_motion is not None or contact is None):
+            raise ValueError("a sample placement carries the contact samples of a body in a "
+                             "fixed frame; it needs a contact and no free or moving frame")
+        self._placement = sample_placement
+        self._end_placement = None
         if deformer.basis is None:
             raise ValueError("the deformer has no basis B; build it with its basis")
         if integrator not in INTEGRATORS:
@@ -1176,17 +1186,30 @@ class Simulation:
         self._sample_rest = np.asarray(contact.points, dtype=np.float64).reshape(k, 3) - self.origin
         self._sample_rows = rows
 
-    def _sample_positions(self, q, R, c):
-        """(k, 3) world positions R (P - origin + rows q) + c of the contact samples."""
+    def _placed_at(self, t):
+        """The samples' placement (A (k, 3, 3), b (k, 3)) at time t, or None (identity)."""
+        if self._placement is None:
+            return None
+        A, b = self._placement(t)
+        return np.asarray(A, dtype=np.float64), np.asarray(b, dtype=np.float64)
+
+    def _sample_positions(self, q, R, c, placement=None):
+        """(k, 3) world positions R (A (P - origin + rows q) + b) + c of the contact samples,
+        placement (A, b) or None for the identity."""
         body = self._sample_rest + (self._sample_rows @ q).reshape(-1, 3)
+        if placement is not None:
+            body = np.einsum("kij,kj->ki", placement[0], body) + placement[1]
         return body @ np.asarray(R, dtype=np.float64).T + np.asarray(c, dtype=np.float64)
 
     def _begin_contact(self, v_q):
         """``contact.begin_step`` at t_n with the samples' world positions and velocities:
-        Newmark's pushed-forward v = R' Y + R B v_q + c' (v_q from ``_body_rates``), implicit
-        Euler's backward difference. The first step checks the start (``check_start``)."""
+        Newmark's pushed-forward v = R' Y + R B v_q + c' (v_q from ``_body_rates``) plus a
+        placement's secant rate over the step, implicit Euler's backward difference. The first
+        step checks the start (``check_start``). Keeps the placement at the step's end."""
         R, c = np.asarray(self.rotation, float), np.asarray(self.translation, float)
-        x = self._sample_positions(self.q, R, c)
+        start = self._placed_at(self.time)
+        self._end_placement = self._placed_at(self.time + self.dt)
+        x = self._sample_positions(self.q, R, c, start)
         if not self._contact_checked:
             try:
                 self.contact.check_start(x, self.time)
@@ -1194,13 +1217,18 @@ class Simulation:
                 raise StartsInsideError(str(exc)) from None
             self._contact_checked = True
         if self.newmark:
-            v = (self._sample_rows @ v_q).reshape(-1, 3) @ R.T
+            rate = (self._sample_rows @ v_q).reshape(-1, 3)
+            if start is not None:     # fixed frame (R = I, c = 0): the placement's own rate
+                moved = self._sample_positions(self.q, R, c, self._end_placement)
+                rate = np.einsum("kij,kj->ki", start[0], rate) + (moved - x) / self.dt
+            v = rate @ R.T
             if self.free or self.frame_motion is not None:
                 R1, _, c1, _ = self._frame_rates()
                 v += (x - c) @ (R1 @ R.T).T + c1
         else:
             v = (x - self._sample_positions(self.q_prev, self.rotation_prev,
-                                            self.translation_prev)) / self.dt
+                                            self.translation_prev,
+                                            self._placed_at(self.time - self.dt))) / self.dt
         self.contact.begin_step(self.time, self.dt, x, v)
 
     def _contact_terms(self, q, R, c, order, framed):
@@ -1209,12 +1237,13 @@ class Simulation:
 
         dx_p/dq = R rows_p, dx_p/dphi = -skew(x_p - c), dx_p/du = I; the Hessian
         sum_p J_p^T H_p J_p only over samples whose block H_p is nonzero."""
-        body = self._sample_rest + (self._sample_rows @ q).reshape(-1, 3)
-        r = body @ R.T
+        A = None if self._end_placement is None else self._end_placement[0]
+        r = self._sample_positions(q, R, c, self._end_placement) - c
         value, g, H = self.contact.evaluate(r + c, order)
         if order == 0 or not np.isfinite(value):
             return value, None, None
-        grad = self._sample_rows.T @ (g @ R).ravel()
+        pulled = g @ R if A is None else np.einsum("kij,ki->kj", A, g @ R)     # A^T R^T g
+        grad = self._sample_rows.T @ pulled.ravel()
         if framed:
             grad = np.concatenate([grad, np.cross(r, g).sum(axis=0), g.sum(axis=0)])
         if order < 2:
@@ -1224,7 +1253,8 @@ class Simulation:
         if len(active) == 0:
             return value, grad, np.zeros((n, n))
         rows = self._sample_rows.reshape(-1, 3, self.basis_size)[active]
-        Jp = np.einsum("ij,kja->kia", R, rows)                                # (a, 3, rB)
+        to_world = np.broadcast_to(R, (len(active), 3, 3)) if A is None else R @ A[active]
+        Jp = np.einsum("kij,kja->kia", to_world, rows)                        # (a, 3, rB)
         if framed:
             eye = np.broadcast_to(np.eye(3), (len(active), 3, 3))
             Jp = np.concatenate([Jp, -rs.skew(r[active]), eye], axis=2)
@@ -1235,7 +1265,8 @@ class Simulation:
         """The first of (s, R, c) guesses whose samples are outside every collider."""
         for s, R, c in guesses:
             q = self.deformer.q(s)
-            if np.isfinite(self.contact.evaluate(self._sample_positions(q, R, c), 0)[0]):
+            x = self._sample_positions(q, R, c, self._end_placement)
+            if np.isfinite(self.contact.evaluate(x, 0)[0]):
                 return s, R, c
         raise ContactError(f"at t = {self.time:.4g} s a collider or the keyed motion moved into "
                            "the body within one step; add substeps")

@@ -100,10 +100,16 @@ class RigMotion:
         """(b, 3, 4) second time derivative of the transforms at t [1/s^2]."""
         return self._blend(self.accelerations, t)
 
+    def placement(self, t, weights):
+        """(A (k, 3, 3), b (k, 3)): the blended affine maps x = A X + b at time t [s] of k
+        points with weights (k, b) (``dynamics.Simulation``'s ``sample_placement``)."""
+        blend = np.einsum("kb,bij->kij", np.asarray(weights, dtype=np.float64), self.at(t))
+        return blend[:, :, :3], blend[:, :, 3]
+
     def skin(self, t, weights, points):
         """(k, 3) world positions of rest points (k, 3) with weights (k, b) at time t."""
-        A = np.einsum("kb,bij->kij", np.asarray(weights, dtype=np.float64), self.at(t))
-        return np.einsum("kij,kj->ki", A[:, :, :3], np.asarray(points)) + A[:, :, 3]
+        A, b = self.placement(t, weights)
+        return np.einsum("kij,kj->ki", A, np.asarray(points)) + b
 
 
 class RigLoad:

@@ -267,3 +267,63 @@ def test_follow_springs_hold_the_flesh_as_their_stiffness_says():
     print(f"tip sag {np.abs(W @ sags[0]).max():.4f} m free, {np.abs(W @ sags[1]).max():.4f} m "
           "held")
     assert np.abs(W @ sags[1]).max() < 0.5 * np.abs(W @ sags[0]).max()
+
+
+def test_flesh_on_a_turning_bone_meets_a_wall_as_a_keyed_body_does():
+    """Contact on a rig (``sample_placement``: the samples skinned to the world). A 1 m bar,
+    pinned at x = 0, all weight on one bone that turns 60 deg about z in 1 s (smoothstep), runs
+    into a wall at y = 0.5 (x in [0.75, 1.4]). Oracles: without the wall the samples pass
+    y = 0.5; with it none gets behind the wall; and the skinned flesh moves as the same bar
+    keyed on a frame with the same turn (``FrameMotion``, the other code path) within 1 cm,
+    with or without the wall."""
+    from test_collisions import body_contact, build_body as collision_body, quad
+    body = collision_body((1.0, 0.1, 0.1), (20, 2, 2), 1e7, pinned=True, samples=80)
+    X, idx, frames = body["X"], body["idx"], 36
+    times = np.arange(frames) * H
+    ease = np.clip(times, 0.0, 1.0)
+    turns = Rotation.from_rotvec(np.radians(60.0) * (3 * ease ** 2 - 2 * ease ** 3)[:, None]
+                                 * np.array([0.0, 0.0, 1.0])).as_matrix()
+    transforms = np.concatenate([turns, np.zeros((frames, 3, 1))], axis=2)[:, None]
+    motion = rig.RigMotion(times, transforms)
+    y_wall = 0.5
+    wall = quad([[0.75, y_wall, -0.5], [1.4, y_wall, -0.5], [1.4, y_wall, 0.5],
+                 [0.75, y_wall, 0.5]], thickness=0.02)
+    sample_weights = np.ones((len(idx), 1))
+    common = dict(substeps=4, stiffness_damping=0.002)
+
+    def rigged(colliders):
+        load = rig.RigLoad(motion, np.ones((len(X), 1)), body["masses"], body["deformer"].basis,
+                           X, gravity=(0.0, 0.0, 0.0))
+        extra = {} if colliders is None else dict(
+            contact=body_contact(body, colliders),
+            sample_placement=lambda t: motion.placement(t, sample_weights))
+        u = dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
+                                external_force=load.force, **common, **extra) \
+            .run(frames - 1).body_displacements(body["rows"])
+        return np.array([motion.skin(k * H, sample_weights, X[idx] + u[k])
+                         for k in range(frames)])
+
+    def keyed(colliders):
+        frame = dynamics.FrameMotion(times, turns, np.zeros((frames, 3)))
+        extra = {} if colliders is None else dict(contact=body_contact(body, colliders))
+        return dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
+                                   frame_motion=frame, **common, **extra) \
+            .run(frames - 1).world_positions(X[idx], body["rows"])
+
+    free, walled = rigged(None), rigged([wall])
+    reference_free, reference_walled = keyed(None), keyed([wall])
+    under_wall = walled[:, :, 0] > 0.75
+    print(f"rig and wall: free samples reach y = {free[:, :, 1].max():.3f} m, walled ones "
+          f"{walled[:, :, 1][under_wall].max():.4f} m under the wall; off the keyed body by "
+          f"{np.abs(free - reference_free).max():.1e} m free, "
+          f"{np.abs(walled - reference_walled).max():.1e} m walled")
+    assert free[:, :, 1].max() > y_wall + 0.2
+    assert walled[:, :, 1][under_wall].max() < y_wall
+    assert np.abs(free - reference_free).max() < 0.01
+    assert np.abs(walled - reference_walled).max() < 0.01
+
+
+def test_sample_placement_needs_contact_in_a_fixed_frame(bar):
+    with pytest.raises(ValueError, match="sample placement"):
+        dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H,
+                            sample_placement=lambda t: None)
