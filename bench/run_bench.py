@@ -26,6 +26,28 @@ def peak_rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+class StagePeak:
+    """Peak RSS [MB] of one stage of a case: Linux's high-water mark (VmHWM) is reset on entry
+    (``/proc/self/clear_refs``) and read on exit. Elsewhere it is the process's peak so far."""
+
+    def __enter__(self):
+        try:
+            pathlib.Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            pass
+        return self
+
+    def __exit__(self, *exc):
+        self.mb = peak_rss_mb()
+        try:
+            for line in pathlib.Path("/proc/self/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    self.mb = int(line.split()[1]) / 1024.0
+        except OSError:
+            pass
+        return False
+
+
 def read_surface(path):
     import igl
     if path.suffix == ".mesh":          # a MEDIT tet mesh: tetrahedralise its surface anew
@@ -56,30 +78,29 @@ def case_prepare_dense(subdivisions):
     V, F = read_surface(MESHES / "decimated-knight.off")
     V, F = igl.upsample(np.asarray(V, float), np.asarray(F, np.int64),
                         number_of_subdivs=int(subdivisions))[:2]
-    seconds = {}
-    start = time.perf_counter()
+    seconds, peaks = {}, {}
+
+    def stage(name, work):
+        start = time.perf_counter()
+        with StagePeak() as peak:
+            out = work()
+        seconds[name], peaks[name] = time.perf_counter() - start, peak.mb
+        return out
+
     budget = proxy.triangle_budget(V, F, 0.05)
-    P, G, simplified = proxy.proxy_surface(V, F, budget)
-    seconds["proxy"] = time.perf_counter() - start
-    start = time.perf_counter()
-    X, T = tetmesh.tetrahedralize(P, G)
-    seconds["tetrahedralize"] = time.perf_counter() - start
-    start = time.perf_counter()
-    embed.embed_points(X, T, V)
-    seconds["embed"] = time.perf_counter() - start
-    start = time.perf_counter()
+    P, G, simplified = stage("proxy", lambda: proxy.proxy_surface(V, F, budget))
+    X, T = stage("tetrahedralize", lambda: tetmesh.tetrahedralize(P, G))
+    stage("embed", lambda: embed.embed_points(X, T, V))
     masses = fem.lumped_masses(X, T, 1000.0)
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, 20,
-                              rest_positions=X)
-    seconds["modes"] = time.perf_counter() - start
-    start = time.perf_counter()
-    recon = rs.PoissonReconstruction(X, T)
-    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues, recon)
-    seconds["reduced"] = time.perf_counter() - start
+    body = stage("modes", lambda: modes.linear_modes(
+        fem.stiffness_matrix(X, T, 1e6, 0.45), masses, 20, rest_positions=X))
+    deformer, _ = stage("reduced", lambda: reduced.prepare_reduced_rs(
+        X, T, masses, body.vectors, body.eigenvalues, rs.PoissonReconstruction(X, T)))
     return dict(triangles=len(F), proxy_triangles=len(G), simplified=simplified, nodes=len(X),
                 tets=len(T), basis_size=deformer.basis_size,
                 cubature_tets=len(deformer.cubature_tets), seconds=seconds,
-                total_seconds=sum(seconds.values()), peak_rss_mb=peak_rss_mb())
+                stage_peak_rss_mb=peaks, total_seconds=sum(seconds.values()),
+                peak_rss_mb=peak_rss_mb())
 
 
 def prepare_dense_table(row):
@@ -96,27 +117,58 @@ def prepare_dense_table(row):
                      f"| {t['proxy']:.1f} | {t['tetrahedralize']:.1f} | {t['embed']:.1f} "
                      f"| {t['modes']:.1f} | {t['reduced']:.1f} | {row['total_seconds']:.1f} "
                      f"| {row['peak_rss_mb']:.0f} |")
+        lines += ["", "Peak RSS of each stage (MB): " + ", ".join(
+            f"{name} {mb:.0f}" for name, mb in row["stage_peak_rss_mb"].items())]
     return "\n".join(lines) + "\n"
 
 
-def case_modes(size):
+def _bar_problem(size):
     import numpy as np
-    from solver import fem, meshgen, modes
+    from solver import fem, meshgen
     n = BAR_SIZES[size]
     X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
-    baseline = peak_rss_mb()
     start = time.perf_counter()
     K = fem.stiffness_matrix(X, T, 1e6, 0.45)
     m = fem.lumped_masses(X, T, 1100.0)
-    assembly = time.perf_counter() - start
+    return X, T, pinned, K, m, time.perf_counter() - start
+
+
+def case_modes(arg):
+    """20 modes of the pinned bar; arg "<size>" (SuperLU's minimum degree, the old solver) or
+    "<size>:nd" (nested dissection, solver.ordering). Peak RSS of the modes stage alone."""
+    from solver import modes
+    size, _, kind = arg.partition(":")
+    ordering = "nested_dissection" if kind == "nd" else "mmd"
+    X, T, pinned, K, m, assembly = _bar_problem(size)
+    baseline = peak_rss_mb()
     start = time.perf_counter()
-    result = modes.linear_modes(K, m, 20, pinned)
+    with StagePeak() as peak:
+        result = modes.linear_modes(K, m, 20, pinned, rest_positions=X, ordering=ordering)
     mode_seconds = time.perf_counter() - start
-    return dict(size=size, nodes=len(X), tets=len(T), assembly_seconds=assembly,
-                modes_seconds=mode_seconds, num_modes=20,
-                first_frequency_hz=float(result.frequencies_hz[0]),
+    return dict(size=size, ordering=ordering, nodes=len(X), tets=len(T),
+                assembly_seconds=assembly, modes_seconds=mode_seconds, num_modes=20,
+                first_frequency_hz=float(result.frequencies_hz[0]), modes_peak_rss_mb=peak.mb,
                 peak_rss_mb=peak_rss_mb(), rss_before_mb=baseline)
+
+
+def case_modes_agreement(size):
+    """Old (minimum degree) and new (nested dissection) modes of one bar: the largest relative
+    eigenvalue difference and the largest principal angle between the two 20-mode subspaces
+    (M inner product)."""
+    import numpy as np
+    import scipy.linalg
+    from solver import modes
+    X, T, pinned, K, m, _ = _bar_problem(size)
+    old, new = (modes.linear_modes(K, m, 20, pinned, rest_positions=X, ordering=o)
+                for o in ("mmd", "nested_dissection"))
+    w = np.sqrt(np.repeat(m, 3))[:, None]
+    cosines = scipy.linalg.svdvals(np.linalg.qr(w * old.vectors)[0].T
+                                   @ np.linalg.qr(w * new.vectors)[0])
+    return dict(size=size, tets=len(T),
+                max_relative_eigenvalue_difference=float(
+                    np.max(np.abs(new.eigenvalues - old.eigenvalues) / old.eigenvalues)),
+                max_principal_angle=float(np.arccos(np.clip(cosines.min(), -1.0, 1.0))))
 
 
 def case_rs_full(size, repeats=5):
@@ -149,7 +201,8 @@ def case_rs_full(size, repeats=5):
                 peak_rss_mb=peak_rss_mb(), rss_before_mb=baseline)
 
 
-CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes, "rs_full": case_rs_full,
+CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes,
+         "modes_agreement": case_modes_agreement, "rs_full": case_rs_full,
          "prepare_dense": case_prepare_dense}
 
 
@@ -182,7 +235,8 @@ def case_reduced_rs(size, num_modes=20, num_held_out=40):
     X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
     masses = fem.lumped_masses(X, T, 1100.0)
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned)
+    body = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, num_modes, pinned,
+                              rest_positions=X)
     start = time.perf_counter()
     modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
     recon = rs.PoissonReconstruction(X, T, pinned)
@@ -960,7 +1014,9 @@ def main():
     results = dict(machine=dict(python=platform.python_version(), cpu=platform.processor(),
                                 cores=__import__("os").cpu_count()),
                    tetrahedralize=[run_child("tetrahedralize", m) for m in meshes],
-                   modes=[run_child("modes", s) for s in sizes],
+                   modes=[run_child("modes", s + kind) for kind in ("", ":nd")
+                          for s in sizes],
+                   modes_agreement=[run_child("modes_agreement", s) for s in sizes[:2]],
                    rs_full=[run_child("rs_full", s) for s in sizes])
     output = pathlib.Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
@@ -971,10 +1027,21 @@ def main():
         [("mesh", ("mesh", "{}")), ("surface faces", ("surface_faces", "{:,}")),
          ("nodes", ("nodes", "{:,}")), ("tets", ("tets", "{:,}")), ("s", ("seconds", "{:.2f}"))]
     ) + "\n" + table(
-        "Assembly and 20 linear modes (pinned 4:1:1 bar)", results["modes"],
-        [("size", ("size", "{}")), ("nodes", ("nodes", "{:,}")), ("tets", ("tets", "{:,}")),
-         ("assembly s", ("assembly_seconds", "{:.2f}")), ("modes s", ("modes_seconds", "{:.2f}")),
-         ("peak RSS MB", ("peak_rss_mb", "{:.0f}")), ("RSS before MB", ("rss_before_mb", "{:.0f}"))]
+        "Assembly and 20 linear modes (pinned 4:1:1 bar; SuperLU shift-invert ordered by its "
+        "minimum degree (old) or by nested dissection (new); target at 100k: < 10 s, < 1 GB)",
+        results["modes"],
+        [("size", ("size", "{}")), ("ordering", ("ordering", "{}")), ("nodes", ("nodes", "{:,}")),
+         ("tets", ("tets", "{:,}")), ("assembly s", ("assembly_seconds", "{:.2f}")),
+         ("modes s", ("modes_seconds", "{:.2f}")),
+         ("modes peak RSS MB", ("modes_peak_rss_mb", "{:.0f}")),
+         ("process peak RSS MB", ("peak_rss_mb", "{:.0f}")),
+         ("RSS before MB", ("rss_before_mb", "{:.0f}"))]
+    ) + "\n" + table(
+        "Old and new modes agree (targets: eigenvalues within 1e-6 relative, principal angles "
+        "< 1e-4 rad)", results["modes_agreement"],
+        [("size", ("size", "{}")), ("tets", ("tets", "{:,}")),
+         ("max eigenvalue difference", ("max_relative_eigenvalue_difference", "{:.1e}")),
+         ("max principal angle rad", ("max_principal_angle", "{:.1e}"))]
     ) + "\n" + table(
         "Full RS reconstruction y -> u (pinned 4:1:1 bar, first mode, tip 8x thickness)",
         results["rs_full"],
