@@ -1235,7 +1235,8 @@ class Simulation:
         """Contact value [J], gradient and Gauss-Newton Hessian in q (rB,), or in (q, phi, u)
         (rB + 6,) for a free frame R = exp(skew(phi)) R, c + u at phi = u = 0.
 
-        dx_p/dq = R rows_p, dx_p/dphi = -skew(x_p - c), dx_p/du = I; the Hessian
+        dx_p/dq = R A_p rows_p (A_p the step end's sample placement, I without one),
+        dx_p/dphi = -skew(x_p - c), dx_p/du = I; the Hessian
         sum_p J_p^T H_p J_p only over samples whose block H_p is nonzero."""
         A = None if self._end_placement is None else self._end_placement[0]
         r = self._sample_positions(q, R, c, self._end_placement) - c
