@@ -182,7 +182,8 @@ def case_rs_full(size, repeats=5):
     X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
     K = fem.stiffness_matrix(X, T, 1e6, 0.45)
-    W = modes.linear_modes(K, fem.lumped_masses(X, T, 1100.0), 1, pinned).vectors
+    W = modes.linear_modes(K, fem.lumped_masses(X, T, 1100.0), 1, pinned,
+                           rest_positions=X).vectors
     tip = X[:, 0] > 4.0 - 1e-9
     amplitude = 8.0 / np.linalg.norm(W.reshape(len(X), 3, 1)[tip].mean(axis=0))
     y = rs.warp_modes(rs.linear_rs(rs.rs_operator(X, T), W), [amplitude])

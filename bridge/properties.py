@@ -128,6 +128,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Substeps", default=0, min=0, max=1000, soft_max=64,
         description="Steps per frame; 0 = automatic, from the body's highest mode frequency, "
                     "so the motion does not depend on the frame rate")
+    start_settled: BoolProperty(
+        name="Start Settled", default=False,
+        description="Start at rest in static equilibrium under gravity (on a rig, also under "
+                    "its first frame's loads) instead of from the undeformed shape, so a pinned "
+                    "body does not sag and bounce over the first frames")
 
     use_collisions: BoolProperty(
         name="Collisions", default=True,

@@ -18,6 +18,7 @@ class SimulationJob:
     rest: np.ndarray        # (n, 3) base vertices, object space
     free: bool
     warnings: list
+    settle: bool = False    # start at rest in static equilibrium (Start Settled)
 
 
 def object_motion(obj, blender_scene, frames):
@@ -149,8 +150,12 @@ def gather(obj, blender_scene):
             substeps=settings.substeps, tets=tools.tets, contact=body_contact)
     except ValueError as exc:          # e.g. contact samples that do not fit the basis
         raise InputError(f"'{obj.name}': {exc}") from None
+    if settings.start_settled and free:
+        warnings.append(f"'{obj.name}' has no pins: it falls freely, so it starts from its rest "
+                        "shape (Start Settled needs pins)")
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
-                         scene.base_vertices(obj), free, warnings)
+                         scene.base_vertices(obj), free, warnings,
+                         settle=settings.start_settled and not free)
 
 
 def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
@@ -178,7 +183,7 @@ def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     except ValueError as exc:          # e.g. contact samples that do not fit the basis
         raise InputError(f"'{obj.name}': {exc}") from None
     return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
-                         scene.base_vertices(obj), False, warnings)
+                         scene.base_vertices(obj), False, warnings, settle=settings.start_settled)
 
 
 def run(job_inputs, job):
@@ -188,6 +193,9 @@ def run(job_inputs, job):
     def progress(step, total):
         job.step(step / total, f"frame {job_inputs.frames[0] + step} of {job_inputs.frames[-1]}")
 
+    if job_inputs.settle:
+        job.step(0.0, "settling into static equilibrium")
+        job_inputs.simulation.static_equilibrium()
     try:
         trajectory = job_inputs.simulation.run(steps, callback=progress,
                                                should_cancel=job.is_cancelled)

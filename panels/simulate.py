@@ -28,6 +28,7 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
             layout.label(text=damping_label(settings, frequencies[0]))
         layout.prop(settings, "integrator")
         layout.prop(settings, "substeps")
+        layout.prop(settings, "start_settled")
         draw_collisions(layout, context, settings)
         draw_frame_range(layout, settings)
         layout.use_property_split = False

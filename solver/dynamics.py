@@ -1405,7 +1405,9 @@ class Simulation:
     # -- statics, runs, energy ----------------------------------------------------------------
 
     def static_equilibrium(self, s=None, max_iterations=200):
-        """Minimise V(s) - (R^T g).(sum m Y) in the current frame; sets the state at rest there.
+        """Minimise V(s) - (R^T g).(sum m Y) - f_ext(t).q in the current frame (f_ext the
+        ``external_force`` at the current time, e.g. a rig's loads); sets the state at rest
+        there.
 
         For pinned bodies (not free). Same Newton / line search as ``step`` with the elastic
         Hessian alone (so it converges linearly where q(s) curves). s: first guess (default
@@ -1414,6 +1416,8 @@ class Simulation:
         if self.free:
             raise ValueError("a free body has no static equilibrium under gravity")
         b = self.first_moment_B.T @ (self.rotation.T @ self.gravity)
+        if self.external_force is not None:
+            b = b + np.asarray(self.external_force(self.time), dtype=np.float64)
         model = _QuadraticInertia(0.0, self.mass_matrix, b)
         guess = np.zeros(self.num_coords) if s is None else np.asarray(s, dtype=np.float64)
         no_damping = (np.zeros((self.num_coords, self.num_coords)), np.zeros(self.num_coords))

@@ -152,3 +152,31 @@ def test_simulation_follows_the_integrator_and_substeps_settings(ext):
           f" m, sag {sag:.3f} m")
     assert sag > 0.01
     assert np.abs(tips[0] - tips[1]).max() <= 0.02 * sag
+
+
+def test_start_settled_begins_at_rest_in_the_sag_it_keeps(ext):
+    """Start Settled: a pinned bar under gravity starts in its static equilibrium, so with no
+    damping every baked frame is that first sagged pose (a fixed point of the dynamics); from
+    the undeformed shape (the default) the same bar sags and bounces about it."""
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 24
+    obj = make_bar(name="Shelf", cuts=3)
+    obj.rs_elastic.youngs_modulus = 1e7          # sags about 0.4 m (Euler-Bernoulli)
+    prepared(obj)
+    obj.rs_elastic.damping_mass = obj.rs_elastic.damping_stiffness = 0.0
+    rest = vertices(obj)
+    tip = rest[:, 0] > 4.0 - 1e-9
+    runs = {}
+    for settled in (False, True):
+        obj.rs_elastic.start_settled = settled
+        assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+        runs[settled] = baked_positions(obj, range(1, 25))
+    sag = rest[tip, 2].mean() - runs[True][0, tip, 2].mean()
+    still = np.abs(runs[True] - runs[True][0]).max() / diagonal(rest)
+    bounce = np.abs(runs[False] - runs[False][0]).max() / diagonal(rest)
+    print(f"Start Settled: tip sag {sag:.4f} m, frames move {still:.1e} of the diagonal; "
+          f"from rest they move {bounce:.1e}")
+    assert sag > 1e-3 * diagonal(rest)
+    assert still < 1e-6
+    assert bounce > 1e-3
+    assert np.abs(runs[False][0] - rest).max() < 1e-9        # the default starts undeformed
