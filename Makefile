@@ -80,7 +80,8 @@ test-solver: deps
 test-blender: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) -m pytest -q tests/blender
 
-test: test-solver test-blender
+# The whole suite: solver, then Blender on the newest LTS, then on every older supported Blender.
+test: test-solver test-blender test-matrix
 
 # The whole Blender suite on each older version, with the same zips (validated by that version's
 # own extension tool first).
