@@ -137,6 +137,9 @@ def gather(obj, blender_scene):
     # The volume barrier over all tets keeps the body from inverting; tets let every step check.
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
+    # ... and one on the reconstruction keeps the positions the user sees from inverting.
+    potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,
+                                                      tools.tets)
     # A keyed body simulates in world space, a still one in its own object space.
     world_to_sim = (np.eye(4) if frame_motion is not None
                     else np.linalg.inv(np.array(obj.matrix_world)))
@@ -170,6 +173,8 @@ def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
                                        np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
     load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
     potential = armature.held_by_follow_weights(obj, tools, masses, potential)
+    potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,
+                                                      tools.tets)
     body_contact, sampled = contact_for(obj, blender_scene, tools, frames, h, np.eye(4),
                                         masses.sum())
     placement = (None if body_contact is None

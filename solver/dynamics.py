@@ -583,7 +583,9 @@ class Simulation:
       is checked (``step``): det F of all tets of x = X + B q must stay above
       ``MIN_VOLUME_RATIO`` and the elastic energy finite, else the step is undone and retaken
       as two half steps (recursively, ``MAX_STEP_SPLITS`` levels); ``InversionError`` if even
-      the smallest inverts. None: no check (the step is taken as it comes).
+      the smallest inverts. Each check's det F also goes to the potential's
+      ``watch_volumes`` if it has one (``inversion.with_reconstruction_barrier``). None: no
+      check (the step is taken as it comes).
     contact: a ``contact.Contact`` of this body's surface samples (its rows over the same
       basis B, its points in rest space), or None. Its energy joins every step's objective
       (module docstring, Contact); a start inside a collider raises ValueError at the first step.
@@ -729,6 +731,8 @@ class Simulation:
         self._contact_checked = False                 # the first step checks the new start
         if self.newmark:
             self._start_newmark(velocity, w, v)
+        if self._volumes is not None:
+            self._watch(self._volumes.ratios(self.q))
 
     def _start_newmark(self, s_dot, angular_velocity, linear_velocity):
         """Newmark's state in generalised coordinates: v_s = s_dot and the acceleration a_s
@@ -870,9 +874,11 @@ class Simulation:
         if blocked is None:
             if self._volumes is None:
                 return iterations
-            count, smallest, finite = self._inverted_tets()
+            count, smallest, finite, ratios = self._inverted_tets()
             if count == 0 and finite:
+                self._watch(ratios)
                 return iterations
+            self._watch(ratios, keep=True)     # the retried halves see the tets that turned
         self._restore(snapshot)
         if splits >= MAX_STEP_SPLITS:
             if blocked is not None:
@@ -885,10 +891,19 @@ class Simulation:
         return iterations
 
     def _inverted_tets(self):
-        """(count of tets with det F <= MIN_VOLUME_RATIO, smallest det F, energy finite?)."""
+        """(count of tets with det F <= MIN_VOLUME_RATIO, smallest det F, energy finite?,
+        every tet's det F (E,))."""
         ratios = self._volumes.ratios(self.q)
         finite = bool(np.isfinite(self.potential.evaluate(self.coords, 0)[0]))
-        return int(np.count_nonzero(ratios <= MIN_VOLUME_RATIO)), float(ratios.min()), finite
+        return (int(np.count_nonzero(ratios <= MIN_VOLUME_RATIO)), float(ratios.min()), finite,
+                ratios)
+
+    def _watch(self, ratios, keep=False):
+        """Hand every tet's det F to a potential with a reconstruction barrier
+        (``inversion.ReconstructionBarrier.watch``)."""
+        watch = getattr(self.potential, "watch_volumes", None)
+        if watch is not None:
+            watch(ratios, keep)
 
     def _snapshot(self):
         """The whole integrator state: every attribute (a step rebinds its state attributes,

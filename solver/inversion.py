@@ -240,6 +240,15 @@ class BarrierPotential(materials.PotentialAccessors):
             raise AttributeError(name)
         return getattr(self.potential, name)
 
+    def watch_volumes(self, ratios, keep=False):
+        """Pass every tet's det F (E,) at the step's start to the reconstruction barriers
+        (``ReconstructionBarrier.watch``), here and in the wrapped potentials."""
+        if hasattr(self.barrier, "watch"):
+            self.barrier.watch(ratios, keep)
+        inner = getattr(self.potential, "watch_volumes", None)
+        if inner is not None:
+            inner(ratios, keep)
+
     def evaluate(self, s, order=2):
         """V + V_b [J], grad (m,), Hessian (m, m) (barrier Hessian PSD-projected)."""
         energy, grad, hess = self.potential.evaluate(s, order)
@@ -256,6 +265,101 @@ def with_barrier(potential, modal_rs, volumes, j_hat=J_HAT):
     """
     return BarrierPotential(potential, VolumeBarrier.for_material(potential.material, modal_rs,
                                                                   volumes, j_hat))
+
+
+RECONSTRUCTION_J_HAT = 0.25   # det F of the reconstruction below which its barrier acts
+WATCH_J = 0.6                 # tets at or below this det F at a step's start are watched
+
+
+class ReconstructionBarrier:
+    """V_r(s) = kappa sum_e V_e b(det F_e(s)) [J]: the barrier ``b`` on the volume ratio of
+    the *reconstruction* x = X + B q(s), the positions the user sees, over the watched tets.
+
+    Why a second barrier: ``VolumeBarrier`` keeps the RS stretch of every tet positive, but
+    the reduced reconstruction only approximates its RS target (module docstring), so a few
+    tets of it can still turn over, e.g. under a contact that stops part of a soft body, or in
+    a coarse reduced model (tests/solver/test_inversion.py: a Linear column with a 40-column
+    basis inverted at frame 51 and the step check gave up; with this barrier its smallest
+    det F stays at 0.03). With it, the line search of every implicit step rejects a
+    reconstruction that turns a tet inside out, as it rejects one inside a collider. det F is
+    invariant under the body's frame, so body-frame positions suffice. j_hat 0.25
+    (RECONSTRUCTION_J_HAT): below what ordinary motion reaches, so results elsewhere are
+    unchanged (the barrier is exactly zero above j_hat).
+
+    Watched tets: evaluating det F of every tet at every Newton iterate would cost a (3N, rB)
+    product each time (a 32k-tet rig shot took 2.6 times as long). ``dynamics.Simulation``
+    already computes every tet's det F once per step for its inversion check, and hands them
+    to ``watch``: the tets at or below WATCH_J then carry the barrier during the next step
+    (a tet above 0.6 at a step's start that reaches 0 within it is caught by the check, which
+    adds it to the watch and retakes the step in halves). Nothing is watched until then.
+
+    deformer: ``reduced.ReducedRS`` or ``LinearDeformer`` with its basis B (3N, rB);
+    rest_positions X (N, 3) [m]; tets (E, 4); stiffness kappa [Pa]. Derivatives: the gradient
+    is exact, sum_e w_e b'(J_e) dq/ds^T B_e^T dJ_e/dx_e; the Hessian is the Gauss-Newton part
+    sum_e w_e b''(J_e) g_e g_e^T (g_e = dJ_e/ds; b'' > 0 below j_hat, so it is PSD), without
+    b' d^2J/ds^2 (indefinite; the line search makes up for it).
+    """
+
+    def __init__(self, deformer, rest_positions, tets, stiffness, j_hat=RECONSTRUCTION_J_HAT):
+        if not 0.0 < j_hat < 1.0:
+            raise ValueError(f"j_hat must lie in (0, 1), got {j_hat!r}")
+        self.deformer = deformer
+        self.volumes = DeformedVolumes(rest_positions, tets, deformer.basis)
+        self.num_coords = deformer.num_coords
+        self.weights = float(stiffness) * np.abs(self.volumes.rest_determinants) / 6.0
+        self.stiffness, self.j_hat = float(stiffness), float(j_hat)
+        self._node_basis = self.volumes.basis.reshape(len(self.volumes.rest), 3, -1)
+        self.watched = np.empty(0, dtype=np.int64)
+
+    def watch(self, ratios, keep=False):
+        """Watch the tets whose det F ``ratios`` (E,) are at or below WATCH_J (with ``keep``,
+        in addition to those already watched)."""
+        low = np.flatnonzero(np.asarray(ratios) <= WATCH_J)
+        self.watched = np.union1d(self.watched, low) if keep else low
+
+    def evaluate(self, s, order=2):
+        """V_r [J], grad (m,), Hessian (m, m) at s (m,) over the watched tets (None below
+        ``order``)."""
+        m = self.num_coords
+        grad = np.zeros(m) if order >= 1 else None
+        hess = np.zeros((m, m)) if order >= 2 else None
+        if len(self.watched) == 0:
+            return 0.0, grad, hess
+        q = self.deformer.q(s)
+        tets = self.volumes.tets[self.watched]
+        node_basis = self._node_basis[tets]                                     # (W, 4, 3, rB)
+        x = self.volumes.rest[tets] + node_basis @ q                            # (W, 4, 3)
+        e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+        rest = self.volumes.rest_determinants[self.watched]
+        J = np.einsum("ei,ei->e", e1, np.cross(e2, e3)) / rest
+        active = np.flatnonzero(J < self.j_hat)
+        if len(active) == 0:
+            return 0.0, grad, hess
+        b, db, d2b = barrier_function(J[active], self.j_hat)
+        w = self.weights[self.watched[active]]
+        value = float(w @ b)
+        if order < 1:
+            return value, None, None
+        e1, e2, e3 = e1[active], e2[active], e3[active]
+        cof = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1)
+        dJ_dx = np.concatenate([-cof.sum(axis=1, keepdims=True), cof], axis=1)    # (A, 4, 3)
+        dJ_dx /= rest[active][:, None, None]
+        dJ_dq = np.einsum("anc,ancr->ar", dJ_dx, node_basis[active])              # (A, rB)
+        g = dJ_dq @ self.deformer.q_jacobian(s)                                   # (A, m)
+        grad = g.T @ (w * db)
+        if order < 2:
+            return value, grad, None
+        return value, grad, g.T @ ((w * d2b)[:, None] * g)
+
+
+def with_reconstruction_barrier(potential, deformer, rest_positions, tets,
+                                j_hat=RECONSTRUCTION_J_HAT):
+    """``potential`` plus a ``ReconstructionBarrier`` of the full mesh (kappa = BARRIER_SCALE *
+    the material's bulk modulus, as the RS volume barrier). Give the result to a
+    ``dynamics.Simulation`` with the same ``tets``: its step check feeds the barrier's watch."""
+    stiffness = BARRIER_SCALE * bulk_modulus(potential.material)
+    return BarrierPotential(potential, ReconstructionBarrier(deformer, rest_positions, tets,
+                                                             stiffness, j_hat))
 
 
 class DeformedVolumes:

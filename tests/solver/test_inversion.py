@@ -218,7 +218,7 @@ def force_one_retry(sim):
     def fail_once():
         if not failed:
             failed.append(True)
-            return 1, -1.0, True
+            return 1, -1.0, True, real_check()[3]
         return real_check()
 
     sim._inverted_tets = fail_once
@@ -271,3 +271,93 @@ def test_inversion_error_when_even_the_smallest_step_inverts():
     assert "\n" not in message and f"frame {error.frame}" in message and "stiffer" in message
     ratios = inversion.DeformedVolumes(column["X"], column["T"], column["deformer"].basis)
     assert ratios.ratios(sim.q).min() > dynamics.MIN_VOLUME_RATIO
+
+
+# The reconstruction barrier ---------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def coarse_column():
+    """The soft column at E = 2e4 with a coarse reduced model (basis 40, 80 cubature tets),
+    whose reconstruction strays furthest from its RS target."""
+    body = build_body((1.0, 0.1, 0.1), (20, 2, 2), 2e4, 0.3, num_modes=8, max_size=40,
+                      max_tets=80, num_poses=80, num_snapshots=200)
+    body["volumes"] = np.abs(fem.tet_volumes(body["X"], body["T"]))
+    return body
+
+
+def reconstruction_barrier(body, watch_all=True):
+    plain = column_potential(body, "LINEAR", barrier=False)
+    stiffness = inversion.BARRIER_SCALE * inversion.bulk_modulus(plain.material)
+    barrier = inversion.ReconstructionBarrier(body["deformer"], body["X"], body["T"], stiffness)
+    if watch_all:
+        barrier.watch(np.zeros(len(body["T"])))
+    return barrier
+
+
+def test_reconstruction_barrier_gradient_matches_central_differences():
+    """At a pose (a fixed direction scaled) where a few tets of the reconstruction are in
+    (0, j_hat): the value is positive, its gradient matches central differences of the value,
+    and the Gauss-Newton Hessian is symmetric PSD and matches sum w b'' g g^T of the
+    differenced per-tet gradients g (an independent sum)."""
+    body = coarse_column()
+    barrier = reconstruction_barrier(body)
+    ratios = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
+    direction = np.random.default_rng(5).normal(size=barrier.num_coords)
+    for scale in np.geomspace(1e-3, 1e2, 400):
+        J = ratios.ratios(body["deformer"].q(scale * direction))
+        if J.min() < barrier.j_hat:
+            break
+    s = scale * direction
+    assert 0.0 < J.min() < barrier.j_hat
+    value, grad, hess = barrier.evaluate(s, 2)
+    assert value > 0.0
+    h = 1e-6 * max(1.0, np.abs(s).max())
+    unit = np.eye(len(s))
+    fd = np.array([(barrier.evaluate(s + h * e, 0)[0] - barrier.evaluate(s - h * e, 0)[0])
+                   / (2 * h) for e in unit])
+    assert np.allclose(fd, grad, rtol=1e-5, atol=1e-7 * np.abs(grad).max())
+    active = np.flatnonzero(J < barrier.j_hat)
+    g = np.array([(ratios.ratios(body["deformer"].q(s + h * e))[active]
+                   - ratios.ratios(body["deformer"].q(s - h * e))[active]) / (2 * h)
+                  for e in unit]).T                                         # (A, m)
+    _, _, d2b = inversion.barrier_function(J[active], barrier.j_hat)
+    expected = g.T @ ((barrier.weights[active] * d2b)[:, None] * g)
+    assert np.allclose(hess, expected, rtol=1e-4, atol=1e-6 * np.abs(expected).max())
+    assert np.allclose(hess, hess.T) and np.linalg.eigvalsh(hess).min() >= -1e-9 * hess.max()
+
+
+def test_reconstruction_barrier_is_zero_unwatched_and_near_rest_and_infinite_inverted():
+    body = coarse_column()
+    barrier = reconstruction_barrier(body, watch_all=False)
+    s = np.full(barrier.num_coords, 1e3)                 # far out: the reconstruction inverts
+    assert barrier.evaluate(s, 2)[0] == 0.0              # nothing watched: nothing to see
+    barrier.watch(np.zeros(len(body["T"])))
+    small = np.full(barrier.num_coords, 1e-4)
+    value, grad, hess = barrier.evaluate(small, 2)
+    assert value == 0.0 and not grad.any() and not hess.any()
+    ratios = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
+    assert ratios.ratios(body["deformer"].q(s)).min() <= 0.0
+    assert np.isinf(barrier.evaluate(s, 0)[0])
+
+
+def test_reconstruction_barrier_keeps_a_coarse_models_column_from_inverting():
+    """The coarse column, Linear, with the RS barrier and the step check: without the
+    reconstruction barrier its reconstruction turns tets over and the check gives up
+    (InversionError, the control); with it the fall completes, det F > 0 on every tet at every
+    frame (recomputed from the trajectory), and the simulation's watch holds exactly the tets
+    at or below WATCH_J at the end."""
+    body = coarse_column()
+    steps = int(SECONDS * FPS)
+    control = column_simulation(body, column_potential(body, "LINEAR"))
+    with pytest.raises(dynamics.InversionError):
+        control.run(steps)
+    potential = inversion.with_reconstruction_barrier(column_potential(body, "LINEAR"),
+                                                      body["deformer"], body["X"], body["T"])
+    sim = column_simulation(body, potential)
+    ratios, volume = volume_ratios(body, sim.run(steps))
+    print(f"coarse column with the reconstruction barrier: min det F {ratios.min():.4f}, "
+          f"volume {volume.min():.3f}-{volume.max():.3f}")
+    assert ratios.min() > dynamics.MIN_VOLUME_RATIO
+    final = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
+    np.testing.assert_array_equal(potential.barrier.watched,
+                                  np.flatnonzero(final.ratios(sim.q) <= inversion.WATCH_J))
