@@ -183,7 +183,9 @@ ext.solver.materials.train_energy_cubature = no_training
 result = bpy.ops.rs_elastic.simulate()
 sim = ext.bridge.simulation_inputs
 inputs = sim.gather(obj, bpy.context.scene)
-potential = inputs.simulation.potential.potential     # the material's, inside the barrier
+potential = inputs.simulation.potential
+while hasattr(potential, "barrier"):                  # the material's, inside the barriers
+    potential = potential.potential
 poses = sim.run(inputs, ext.bridge.jobs.Job(None))
 np.savez({out!r}, tets=potential.tets, weights=potential.weights,
          strain_modes=potential.strain_modes, poses=poses)
@@ -209,7 +211,9 @@ def fresh_poses(ext, obj):
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
     sim = ext.bridge.simulation_inputs
     inputs = sim.gather(obj, bpy.context.scene)
-    material = inputs.simulation.potential.potential   # inside the volume barrier
+    material = inputs.simulation.potential
+    while hasattr(material, "barrier"):                # inside the volume barriers
+        material = material.potential
     return material, sim.run(inputs, ext.bridge.jobs.Job(None))
 
 
