@@ -907,6 +907,8 @@ def case_rig(arg, frames=240, num_modes=20):
     potential = inversion.with_barrier(
         materials.prepare_potential(materials.Linear(mu, lam), modal_rs, volumes)[0], modal_rs,
         volumes)
+    # As a Blender simulation: the reconstruction barrier too (bridge/simulation_inputs.py).
+    potential = inversion.with_reconstruction_barrier(potential, deformer, X, T)
     centres = np.array([0.5, 1.5, 2.5])
     weights = np.maximum(0.0, 1.0 - np.abs(X[:, :1] - centres[None]))      # blended bones
     weights /= weights.sum(axis=1)[:, None]
