@@ -92,6 +92,8 @@ DEGENERATE_MOTION = 1e-12  # relative size under which a mode is "not moving" fo
 MATERIAL_FREEDOM = 1.5     # default bound: each frequency and damping within this factor of prepared
 MATERIAL_PULL = 10.0       # auto rho = MATERIAL_PULL * E_f / r (module doc, "Material regulariser")
 ROUND_TOLERANCE = 1e-3     # a material round lowering J by less than this (relative) has converged
+HANDLE_ROUNDS = 6          # method-of-multipliers rounds of ``solve(exact_handles=True)``
+HANDLE_TOLERANCE = 1e-9    # ... stop once every handle is this close (relative to the handles' extent)
 
 
 class SolveCancelled(Exception):
@@ -883,7 +885,8 @@ def _check_cancel(should_cancel):
 
 def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
           sampling_iterations=30, tolerance=1e-9, initial=None, continuation=True,
-          callback=None, should_cancel=None, round_tolerance=ROUND_TOLERANCE):
+          callback=None, should_cancel=None, round_tolerance=ROUND_TOLERANCE,
+          exact_handles=False):
     """Minimise J over Z (and, with ``optimise_material``, over Lambda, D and S).
 
     iterations: GN steps (default 50) without material optimisation; outer block-descent
@@ -896,8 +899,11 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
     under which the material descent has converged. initial: (F, r) starting Z (default zeros;
     start frames are overwritten by start_state). continuation: run the penalty continuation
     for stiff handles first (module doc). callback(iteration, J) after every recorded step;
-    should_cancel() -> bool polled between steps, raising ``SolveCancelled``. Returns
-    ``SpaceTimeResult`` (``converged`` and ``reason`` say whether each stage converged).
+    should_cancel() -> bool polled between steps, raising ``SolveCancelled``. exact_handles
+    (without material optimisation only): after the penalty solve, meet the handles by the
+    method of multipliers (``_meet_handles``); the result then minimises E_f + E_k subject to
+    the handles rather than J, so its ``objective`` (J) may be above the history's last value.
+    Returns ``SpaceTimeResult`` (``converged`` and ``reason`` say whether each stage converged).
     """
     Z = np.zeros((problem.frames, problem.num_modes)) if initial is None else \
         np.array(initial, dtype=np.float64).reshape(problem.frames, problem.num_modes)
@@ -912,6 +918,8 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
                          "supported: the forces are in the prepared modes' coordinates")
     if not optimise_material:
         done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
+        if exact_handles:
+            _meet_handles(state, gn_cap, tolerance, should_cancel)
         return _result(state, done, "converged" if done else
                        f"Gauss-Newton did not converge in {gn_cap} steps")
 
@@ -964,6 +972,43 @@ def _warm_start(state, iterations, tolerance, callback, should_cancel):
     if Z is not state.Z and value < state.value:
         state.Z, state.value = Z, value
         state.record(0, "warm", callback)
+
+
+def _meet_handles(state, iterations, tolerance, should_cancel):
+    """Method of multipliers (augmented Lagrangian in penalty form) on the handles.
+
+    A penalty solve leaves each handle short of its target by about its force / gamma; on a
+    rigged body, whose loads push back, that was up to 1e-3 of the diagonal, and GN creeps
+    along the stiff valley a larger gamma makes. Each round moves every handle's target by
+    minus its current miss (targets t + s, s <- s - miss: the multiplier lambda = -gamma w s)
+    and solves Z again by GN from the current Z, at the same gamma. A round is kept only if it
+    brings the largest miss down; the rounds stop at HANDLE_ROUNDS or once every handle is
+    within HANDLE_TOLERANCE of the handles' extent. state.Z and state.value (J of the original
+    problem) are updated; the history is not (J is not what the rounds lower).
+    """
+    problem = state.problem
+    if not _has(problem.handles) or problem.gamma <= 0.0:
+        return
+    handles = problem.handles
+    points = np.vstack([handles.rest, handles.targets])
+    goal = HANDLE_TOLERANCE * max(float(np.ptp(points, axis=0).max()), 1e-300)
+    misses = handle_misses(problem, state.Z, state.S)
+    shift = np.zeros_like(handles.targets)
+    for _ in range(HANDLE_ROUNDS):
+        worst = np.abs(misses).max()
+        if worst <= goal:
+            break
+        shift = shift - misses
+        moved = HandleConstraints(handles.frames, handles.rows, handles.rest,
+                                  handles.targets + shift, handles.weights)
+        shifted = _State(replace(problem, handles=moved), state.Z.copy(), state.mu)
+        _optimise_z(shifted, iterations, tolerance, None, None, should_cancel)
+        state.iterations += shifted.iterations
+        trial = handle_misses(problem, shifted.Z, state.S)
+        if np.abs(trial).max() >= worst:
+            break
+        state.Z, misses = shifted.Z, trial
+    state.value = state.evaluate()
 
 
 def handle_tightness(problem):

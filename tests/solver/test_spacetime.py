@@ -237,6 +237,59 @@ def test_gauss_newton_solves_a_quadratic_problem_in_one_step():
     assert abs(warm.objective - one.objective) <= 1e-9 * one.objective
 
 
+def dense_constrained_solution(problem):
+    """Minimiser of E_f subject to every handle met exactly (q = z), by its KKT system."""
+    F, r, h, s = problem.frames, problem.num_modes, problem.h, problem.first_free
+    rows = []
+    for i in range(1, F - 1):                            # E_f rows, straight from the definition
+        for k in range(r):
+            row = np.zeros((F, r))
+            row[i - 1, k] = 1.0 / h ** 2 - problem.damping[k] / (2.0 * h)
+            row[i, k] = -2.0 / h ** 2 + problem.eigenvalues[k]
+            row[i + 1, k] = 1.0 / h ** 2 + problem.damping[k] / (2.0 * h)
+            rows.append(row.reshape(-1))
+    c = problem.handles
+    constraint_rows, values = [], []
+    for j in range(len(c)):
+        block = np.zeros((3, F, r))
+        block[:, c.frames[j]] = c.rows[j] @ problem.sampling
+        constraint_rows.extend(block.reshape(3, -1))
+        values.extend(c.targets[j] - c.rest[j])
+    A, C = np.array(rows)[:, s * r:], np.array(constraint_rows)[:, s * r:]
+    n, k = A.shape[1], len(C)
+    kkt = np.block([[A.T @ A, C.T], [C, np.zeros((k, k))]])
+    return np.linalg.solve(kkt, np.r_[np.zeros(n), values])[:n].reshape(-1, r)
+
+
+def test_exact_handles_meet_the_constrained_minimum_that_a_soft_penalty_misses():
+    """Two handles on a linear deformer with a deliberately soft gamma (1e-4 of the suggested
+    one): the penalty solve misses them; ``exact_handles`` (method of multipliers) meets them
+    and lands on the KKT solution of min E_f subject to the handles (a dense reference)."""
+    rng = np.random.default_rng(8)
+    r = 3
+    eigenvalues = np.array([6.0, 40.0, 150.0])
+    rows = rng.normal(scale=0.05, size=(2, 3, r))
+    handles = st.HandleConstraints([15, 25], rows, np.zeros((2, 3)),
+                                   [[0.3, -0.2, 0.1], [-0.1, 0.2, 0.2]], 1.0)
+    h = 1.0 / 24.0
+    damping = st.rayleigh_damping(eigenvalues, 0.1, 0.002)
+    gamma, _ = st.suggest_weights(h, eigenvalues, damping, reduced.LinearDeformer(r), rows)
+    problem = st.SpaceTimeProblem(40, h, eigenvalues, damping, reduced.LinearDeformer(r),
+                                  handles=handles, gamma=1e-4 * gamma)
+    expected = dense_constrained_solution(problem)
+    soft = st.solve(problem)
+    exact = st.solve(problem, exact_handles=True)
+    scale = np.abs(expected).max()
+    soft_error = np.abs(soft.Z[2:] - expected).max() / scale
+    exact_error = np.abs(exact.Z[2:] - expected).max() / scale
+    print(f"soft penalty: miss {soft.handle_residuals.max():.2e} m, off the constrained "
+          f"minimum by {soft_error:.2e}; exact handles: miss {exact.handle_residuals.max():.2e}"
+          f" m, off by {exact_error:.2e}")
+    assert soft.handle_residuals.max() > 1e-2 and soft_error > 1e-2      # the control
+    assert exact.handle_residuals.max() <= 1e-8 and exact_error <= 1e-6
+    assert exact.objective >= soft.objective       # the soft minimum of J is not the constrained one
+
+
 # 3. Large edit with reduced RS --------------------------------------------------------------
 
 @pytest.fixture(scope="module")
