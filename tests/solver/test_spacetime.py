@@ -189,27 +189,42 @@ def test_average_scheme_stays_bounded_where_central_differences_explode():
 
 # 2. Gauss-Newton on a quadratic problem: one step, dense oracle -------------------------------
 
-def dense_quadratic_solution(problem):
-    """Minimiser of E_f + gamma E_c + E_k for q = z, from rows assembled one by one."""
+def dense_control_rows(problem):
+    """(rows of E_f over the free frames, straight from its definition)."""
     F, r, h, s = problem.frames, problem.num_modes, problem.h, problem.first_free
-    rows, rhs = [], []
-    for i in range(1, F - 1):                            # E_f rows, straight from the definition
+    rows = []
+    for i in range(1, F - 1):
         for k in range(r):
             row = np.zeros((F, r))
             row[i - 1, k] = 1.0 / h ** 2 - problem.damping[k] / (2.0 * h)
             row[i, k] = -2.0 / h ** 2 + problem.eigenvalues[k]
             row[i + 1, k] = 1.0 / h ** 2 + problem.damping[k] / (2.0 * h)
             rows.append(row.reshape(-1))
-            rhs.append(0.0)
+    return np.array(rows)[:, s * r:]
+
+
+def dense_handle_rows(problem):
+    """(rows (3c, free unknowns), values (3c,)): handle j's position minus rest, = target - rest
+    when met (q = z)."""
+    F, r, s = problem.frames, problem.num_modes, problem.first_free
     c = problem.handles
+    rows, values = [], []
     for j in range(len(c)):
         block = np.zeros((3, F, r))
         block[:, c.frames[j]] = c.rows[j] @ problem.sampling
-        scale = np.sqrt(problem.gamma * c.weights[j])
-        rows.extend(scale * block.reshape(3, -1))
-        rhs.extend(scale * (c.targets[j] - c.rest[j]))
-    A, b = np.array(rows)[:, s * r:], np.array(rhs)
-    return np.linalg.solve(A.T @ A, A.T @ b).reshape(-1, r)
+        rows.extend(block.reshape(3, -1))
+        values.extend(c.targets[j] - c.rest[j])
+    return np.array(rows)[:, s * r:], np.array(values)
+
+
+def dense_quadratic_solution(problem):
+    """Minimiser of E_f + gamma E_c + E_k for q = z, from rows assembled one by one."""
+    A = dense_control_rows(problem)
+    C, values = dense_handle_rows(problem)
+    scale = np.repeat(np.sqrt(problem.gamma * problem.handles.weights), 3)
+    rows = np.vstack([A, scale[:, None] * C])
+    rhs = np.r_[np.zeros(len(A)), scale * values]
+    return np.linalg.solve(rows.T @ rows, rows.T @ rhs).reshape(-1, problem.num_modes)
 
 
 def test_gauss_newton_solves_a_quadratic_problem_in_one_step():
@@ -239,26 +254,11 @@ def test_gauss_newton_solves_a_quadratic_problem_in_one_step():
 
 def dense_constrained_solution(problem):
     """Minimiser of E_f subject to every handle met exactly (q = z), by its KKT system."""
-    F, r, h, s = problem.frames, problem.num_modes, problem.h, problem.first_free
-    rows = []
-    for i in range(1, F - 1):                            # E_f rows, straight from the definition
-        for k in range(r):
-            row = np.zeros((F, r))
-            row[i - 1, k] = 1.0 / h ** 2 - problem.damping[k] / (2.0 * h)
-            row[i, k] = -2.0 / h ** 2 + problem.eigenvalues[k]
-            row[i + 1, k] = 1.0 / h ** 2 + problem.damping[k] / (2.0 * h)
-            rows.append(row.reshape(-1))
-    c = problem.handles
-    constraint_rows, values = [], []
-    for j in range(len(c)):
-        block = np.zeros((3, F, r))
-        block[:, c.frames[j]] = c.rows[j] @ problem.sampling
-        constraint_rows.extend(block.reshape(3, -1))
-        values.extend(c.targets[j] - c.rest[j])
-    A, C = np.array(rows)[:, s * r:], np.array(constraint_rows)[:, s * r:]
+    A = dense_control_rows(problem)
+    C, values = dense_handle_rows(problem)
     n, k = A.shape[1], len(C)
     kkt = np.block([[A.T @ A, C.T], [C, np.zeros((k, k))]])
-    return np.linalg.solve(kkt, np.r_[np.zeros(n), values])[:n].reshape(-1, r)
+    return np.linalg.solve(kkt, np.r_[np.zeros(n), values])[:n].reshape(-1, problem.num_modes)
 
 
 def test_exact_handles_meet_the_constrained_minimum_that_a_soft_penalty_misses():
