@@ -577,6 +577,18 @@ class Contact:
                 value += self._dissipation(lag, x, grad, hess, order)
         return value, grad, hess
 
+    def proximity(self, x):
+        """(inside, near): (k,) bools of world sample positions x (k, 3) [m] at the step's end:
+        inside (distance <= 0) some collider, and inside or within its barrier band dhat."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        inside = np.zeros(len(x), dtype=bool)
+        near = np.zeros(len(x), dtype=bool)
+        for c in self.colliders:
+            d, _ = self._distances(c.surface(self._t_end), c.dhat, x)
+            inside |= d <= 0.0
+            near |= d < c.dhat
+        return inside, near
+
     def max_step(self, x, dx, margin=0.1):
         """Optional line-search bound (not part of the agreed interface): the largest fraction
         t in [0, 1] (a float) such that no sample moves by more than (1 - margin) times its

@@ -145,6 +145,8 @@ from . import inversion, reduced, rs
 ARMIJO = 1e-4
 MAX_HALVINGS = 30
 MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
+HOLD_MU = 1e-6             # Tikhonov weight of the held deformation (``_holding_deformation``)
+HOLD_ROUNDS = 3            # fits of the held deformation, each holding the samples the last pushed in
 MIN_VOLUME_RATIO = 1e-3    # det F at or below this counts as inverted (flat or turned inside out)
 
 
@@ -1034,11 +1036,58 @@ class Simulation:
 
     def _minimise_with_contact(self, model, R, c, guess, damping):
         """``_minimise`` of a pinned body's step with its contact in the known frame (R, c),
-        from the predictor, or from s_n if the predictor is inside a collider."""
+        from the first start guess outside the colliders (``_contact_guesses``)."""
         R, c = np.asarray(R, float), np.asarray(c, float)
-        start, _, _ = self._feasible_guess([(guess, R, c), (self.coords, R, c)], False)
+        start, _, _ = self._feasible_guess(self._contact_guesses(guess, R, c), False)
         return self._minimise(_ContactInertia(model, self, R, c), start, damping,
                               self.max_iterations)
+
+    def _contact_guesses(self, guess, R, c):
+        """Start guesses (s, R, c) of a step with contact in the known end frame (R, c), made
+        lazily: the predictor, s_n, then both plus ``_holding_deformation``. A keyed frame or a
+        rig that carries the body towards a collider can put both of the first inside it when
+        the body already touches it (a flicked ear pressed on a box while the creature lands);
+        the held deformation keeps the touching samples where they were at t_n."""
+        yield guess, R, c
+        yield self.coords, R, c
+        hold = self._holding_deformation(R, c)
+        if hold is not None:
+            yield guess + hold, R, c
+            yield self.coords + hold, R, c
+
+    def _holding_deformation(self, R, c, rounds=HOLD_ROUNDS):
+        """ds (m,) that holds the contact samples near a collider at the step's end where they
+        were at t_n, to first order, while the frame (R, c) and the placement move the body:
+        min |G ds - (x_n - x)|^2 + mu ds^T K ds over the held samples, x their end positions
+        with s_n, G = dx/ds = R A rows J (3 per sample, m), K the rest Hessian, mu = HOLD_MU
+        tr(G^T G) / tr(K) (the least elastic energy among near-equal fits). Samples the
+        correction moves into a collider join the held ones, up to ``rounds`` fits. None if no
+        sample is near a collider."""
+        q = self.q
+        start = self._sample_positions(q, self.rotation, self.translation,
+                                       self._placed_at(self.time))
+        end = self._sample_positions(q, R, c, self._end_placement)
+        held = self.contact.proximity(end)[1]
+        if not held.any():
+            return None
+        rows = self._sample_rows.reshape(-1, 3, self.basis_size)
+        to_world = np.broadcast_to(R, (len(rows), 3, 3)) if self._end_placement is None \
+            else R @ self._end_placement[0]
+        G = np.einsum("kij,kja->kia", to_world, rows) @ self.deformer.q_jacobian(self.coords)
+        K = self.potential.rest_hessian
+        for _ in range(rounds):
+            Gh = G[held].reshape(-1, self.num_coords)
+            normal = Gh.T @ Gh
+            mu = HOLD_MU * np.trace(normal) / max(np.trace(K), 1e-300)
+            ds = scipy.linalg.solve(normal + mu * K, Gh.T @ (start - end)[held].ravel(),
+                                    assume_a="sym")
+            moved = self._sample_positions(self.deformer.q(self.coords + ds), R, c,
+                                           self._end_placement)
+            inside = self.contact.proximity(moved)[0] & ~held
+            if not inside.any():
+                break
+            held |= inside
+        return ds
 
     def _newmark_target(self, v_q, a_q):
         """x_hat = x_n + dt v_n + dt^2/4 (a_n + g) as a world field, v and a pushed forward:

@@ -323,6 +323,56 @@ def test_flesh_on_a_turning_bone_meets_a_wall_as_a_keyed_body_does():
     assert np.abs(walled - reference_walled).max() < 0.01
 
 
+@pytest.mark.parametrize("carrier", ["rig", "keyed frame"])
+def test_a_body_carried_into_a_wall_it_touches_starts_each_step_outside_it(carrier, monkeypatch):
+    """A 1 m bar pinned at x = 0 rests 3 mm under a wall (y, x in [0.75, 1.4]; band 1 cm) until
+    frame 2, then its bone (or keyed frame) turns it into the wall at 2 rad/s: 8 cm a frame at
+    the tip. Neither the predictor nor s_n is outside the wall once the turn starts, so without
+    ``_holding_deformation`` the step has no start guess (the control: ContactError, with step
+    halving switched off so that every step must stand alone). With it, every step of 24 frames
+    starts outside and no sample gets behind the wall, while the free bone would carry the tip
+    to y = 0.98 m."""
+    from test_collisions import body_contact, build_body as collision_body, quad
+    monkeypatch.setattr(dynamics, "MAX_STEP_SPLITS", 0)
+    body = collision_body((1.0, 0.1, 0.1), (20, 2, 2), 1e6, pinned=True, samples=80)
+    X, idx, frames = body["X"], body["idx"], 24
+    times = np.arange(frames) * H
+    angle = np.where(times > 2 * H, 2.0 * (times - 2 * H), 0.0)
+    turns = Rotation.from_rotvec(angle[:, None] * np.array([0.0, 0.0, 1.0])).as_matrix()
+    y_wall = X[:, 1].max() + 0.003
+    wall = quad([[0.75, y_wall, -0.5], [1.4, y_wall, -0.5], [1.4, y_wall, 0.5],
+                 [0.75, y_wall, 0.5]], thickness=0.01)
+    weights = np.ones((len(idx), 1))
+    motion = rig.RigMotion(times, np.concatenate([turns, np.zeros((frames, 3, 1))],
+                                                 axis=2)[:, None])
+
+    def samples_over_time():
+        """(F, k, 3) world positions of the contact samples."""
+        common = dict(substeps=1, contact=body_contact(body, [wall]))
+        if carrier == "keyed frame":
+            frame = dynamics.FrameMotion(times, turns, np.zeros((frames, 3)))
+            return dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
+                                       frame_motion=frame, **common) \
+                .run(frames - 1).world_positions(X[idx], body["rows"])
+        load = rig.RigLoad(motion, np.ones((len(X), 1)), body["masses"], body["deformer"].basis,
+                           X, gravity=(0.0, 0.0, 0.0))
+        u = dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
+                                external_force=load.force,
+                                sample_placement=lambda t: motion.placement(t, weights),
+                                **common).run(frames - 1).body_displacements(body["rows"])
+        return np.array([motion.skin(k * H, weights, X[idx] + u[k]) for k in range(frames)])
+
+    x = samples_over_time()
+    under_wall = x[:, :, 0] > 0.75
+    print(f"{carrier}: samples under the wall reach y = {x[:, :, 1][under_wall].max():.4f} m "
+          f"(wall {y_wall:.4f} m); free tip y {np.sin(angle[-1]):.2f} m")
+    assert x[:, :, 1][under_wall].max() < y_wall
+    assert np.sin(angle).max() > 0.9
+    monkeypatch.setattr(dynamics.Simulation, "_holding_deformation", lambda self, R, c: None)
+    with pytest.raises(dynamics.ContactError, match="moved into the body"):
+        samples_over_time()
+
+
 def test_sample_placement_needs_contact_in_a_fixed_frame(bar):
     with pytest.raises(ValueError, match="sample placement"):
         dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H,
