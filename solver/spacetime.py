@@ -94,6 +94,7 @@ MATERIAL_PULL = 10.0       # auto rho = MATERIAL_PULL * E_f / r (module doc, "Ma
 ROUND_TOLERANCE = 1e-3     # a material round lowering J by less than this (relative) has converged
 HANDLE_ROUNDS = 6          # method-of-multipliers rounds of ``solve(exact_handles=True)``
 HANDLE_TOLERANCE = 1e-9    # ... stop once every handle is this close (relative to the handles' extent)
+HANDLE_MET = 1e-4          # ... and report the handles met (converged) within this of their extent
 
 
 class SolveCancelled(Exception):
@@ -918,8 +919,13 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
                          "supported: the forces are in the prepared modes' coordinates")
     if not optimise_material:
         done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
-        if exact_handles:
-            _meet_handles(state, gn_cap, tolerance, should_cancel)
+        worst = _meet_handles(state, gn_cap, tolerance, should_cancel) if exact_handles \
+            else None
+        if worst is not None:       # the multipliers decide: are the handles met?
+            met = worst <= HANDLE_MET
+            return _result(state, met, f"handles met to {worst:.1e} of their extent" if met
+                           else f"the handles stay up to {worst:.1e} of their extent from "
+                                f"their targets: they may ask for the impossible")
         return _result(state, done, "converged" if done else
                        f"Gauss-Newton did not converge in {gn_cap} steps")
 
@@ -984,14 +990,16 @@ def _meet_handles(state, iterations, tolerance, should_cancel):
     and solves Z again by GN from the current Z, at the same gamma. A round is kept only if it
     brings the largest miss down; the rounds stop at HANDLE_ROUNDS or once every handle is
     within HANDLE_TOLERANCE of the handles' extent. state.Z and state.value (J of the original
-    problem) are updated; the history is not (J is not what the rounds lower).
+    problem) are updated; the history is not (J is not what the rounds lower). Returns the
+    largest miss over the handles' extent (a float), or None without handles.
     """
     problem = state.problem
     if not _has(problem.handles) or problem.gamma <= 0.0:
-        return
+        return None
     handles = problem.handles
     points = np.vstack([handles.rest, handles.targets])
-    goal = HANDLE_TOLERANCE * max(float(np.ptp(points, axis=0).max()), 1e-300)
+    extent = max(float(np.ptp(points, axis=0).max()), 1e-300)
+    goal = HANDLE_TOLERANCE * extent
     misses = handle_misses(problem, state.Z, state.S)
     shift = np.zeros_like(handles.targets)
     for _ in range(HANDLE_ROUNDS):
@@ -1009,6 +1017,7 @@ def _meet_handles(state, iterations, tolerance, should_cancel):
             break
         state.Z, misses = shifted.Z, trial
     state.value = state.evaluate()
+    return float(np.abs(misses).max()) / extent
 
 
 def handle_tightness(problem):

@@ -288,6 +288,28 @@ def test_exact_handles_meet_the_constrained_minimum_that_a_soft_penalty_misses()
     assert soft.handle_residuals.max() > 1e-2 and soft_error > 1e-2      # the control
     assert exact.handle_residuals.max() <= 1e-8 and exact_error <= 1e-6
     assert exact.objective >= soft.objective       # the soft minimum of J is not the constrained one
+    assert exact.converged and exact.reason.startswith("handles met to")
+
+
+def test_exact_handles_that_contradict_each_other_are_reported_unmet():
+    """Two handles on the same vertices and frame with targets 0.4 m apart: no motion meets
+    both, the multipliers cannot lower the larger miss (0.2 m each at best), and the result
+    says so instead of claiming convergence."""
+    r = 3
+    eigenvalues = np.array([6.0, 40.0, 150.0])
+    rows = np.random.default_rng(9).normal(scale=0.05, size=(1, 3, r))
+    handles = st.HandleConstraints([15, 15], np.concatenate([rows, rows]), np.zeros((2, 3)),
+                                   [[0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]], 1.0)
+    h = 1.0 / 24.0
+    damping = st.rayleigh_damping(eigenvalues, 0.1, 0.002)
+    gamma, _ = st.suggest_weights(h, eigenvalues, damping, reduced.LinearDeformer(r),
+                                  np.concatenate([rows, rows]))
+    problem = st.SpaceTimeProblem(40, h, eigenvalues, damping, reduced.LinearDeformer(r),
+                                  handles=handles, gamma=gamma)
+    result = st.solve(problem, exact_handles=True)
+    print(result.reason)
+    assert result.handle_residuals.max() >= 0.2 - 1e-9
+    assert not result.converged and "stay up to" in result.reason
 
 
 # 3. Large edit with reduced RS --------------------------------------------------------------
