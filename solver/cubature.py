@@ -85,8 +85,9 @@ def pose_extremes(modal_rs, Z, chunk=16):
     # |eps|_F^2 counts the off-diagonal entries (layout xx, xy, xz, yy, yz, zz) twice.
     weights = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
     rotation, strain = np.empty(len(Z)), np.empty(len(Z))
+    flat = np.asarray(modal_rs).reshape(-1, Z.shape[1])     # (E 9, m): one BLAS product per chunk
     for start in range(0, len(Z), chunk):
-        y = np.asarray(modal_rs) @ Z[start:start + chunk].T                # (E, 9, F)
+        y = (flat @ Z[start:start + chunk].T).reshape(-1, 9, len(Z[start:start + chunk]))
         rotation[start:start + chunk] = np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0)
         strain[start:start + chunk] = np.sqrt(np.einsum("k,ekf->ef", weights,
                                                         y[:, 3:] ** 2)).max(axis=0)
@@ -184,8 +185,9 @@ class _IncrementalNNLS:
         n = len(target)
         self.target, self.capacity = target, capacity
         self.norm = max(float(np.linalg.norm(target)), 1e-300)
-        self.A = np.empty((n, capacity))
-        self.Q = np.empty((n, capacity))
+        # Column-major: the first k columns are one contiguous block for the BLAS products.
+        self.A = np.empty((n, capacity), order="F")
+        self.Q = np.empty((n, capacity), order="F")
         self.R = np.zeros((capacity, capacity))
         self.Qb = np.empty(capacity)
         self.size = 0

@@ -591,6 +591,8 @@ class Simulation:
     contact: a ``contact.Contact`` of this body's surface samples (its rows over the same
       basis B, its points in rest space), or None. Its energy joins every step's objective
       (module docstring, Contact); a start inside a collider raises ValueError at the first step.
+      Its optional ``proximity`` lets a step carried into a collider start outside it
+      (``_holding_deformation``).
     external_force: callable t [s] -> (rB,) generalised force in q-space [N m per unit q],
       e.g. ``rig.RigLoad.force`` (a rig's accelerations and gravity felt by its flesh), added
       to gravity's B^T M g wherever that enters (each step at t_{n+1}, the start acceleration
@@ -1062,12 +1064,15 @@ class Simulation:
         with s_n, G = dx/ds = R A rows J (3 per sample, m), K the rest Hessian, mu = HOLD_MU
         tr(G^T G) / tr(K) (the least elastic energy among near-equal fits). Samples the
         correction moves into a collider join the held ones, up to ``rounds`` fits. None if no
-        sample is near a collider."""
+        sample is near a collider, or if the contact has no ``proximity`` (it is optional)."""
+        proximity = getattr(self.contact, "proximity", None)
+        if proximity is None:
+            return None
         q = self.q
         start = self._sample_positions(q, self.rotation, self.translation,
                                        self._placed_at(self.time))
         end = self._sample_positions(q, R, c, self._end_placement)
-        held = self.contact.proximity(end)[1]
+        held = proximity(end)[1]
         if not held.any():
             return None
         rows = self._sample_rows.reshape(-1, 3, self.basis_size)
@@ -1083,7 +1088,7 @@ class Simulation:
                                     assume_a="sym")
             moved = self._sample_positions(self.deformer.q(self.coords + ds), R, c,
                                            self._end_placement)
-            inside = self.contact.proximity(moved)[0] & ~held
+            inside = proximity(moved)[0] & ~held
             if not inside.any():
                 break
             held |= inside

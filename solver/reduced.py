@@ -29,6 +29,7 @@ import time
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg import blas
 
 from . import cubature, fem, rs
 
@@ -52,38 +53,42 @@ def mode_series_targets(modal_rs, i, k):
     / (k-1)!); k = 2 gives 1/2 d^2 b / dz_i^2 of ``second_order_targets``.
     """
     omega, strain = _mode_fields(np.asarray(modal_rs)[:, :, [i]])
-    K = rs.skew(omega[0])
+    K = rs.skew(omega[0].T)
     power = np.linalg.matrix_power(K, k - 1)                        # [w]x^(k-1), (E, 3, 3)
-    return (power @ K) / math.factorial(k) + (power @ strain[0]) / math.factorial(k - 1)
+    return ((power @ K) / math.factorial(k)
+            + (power @ strain[0].transpose(2, 0, 1)) / math.factorial(k - 1))
 
 
 def _mode_fields(modal_rs):
-    """Per mode: omega (m, E, 3) and the strain matrices eps (m, E, 3, 3) of modal_rs."""
-    m, n_tets = modal_rs.shape[2], modal_rs.shape[0]
-    omega = np.ascontiguousarray(modal_rs[:, :3, :].transpose(2, 0, 1))
-    strain = (modal_rs[:, 3:, :].transpose(2, 0, 1) @ rs.STRAIN_BASIS.reshape(6, 9))
-    return omega, strain.reshape(m, n_tets, 3, 3)
+    """Per mode, tets last (contiguous, for ``_pair_target``): omega (m, 3, E) and the strain
+    matrices eps (m, 3, 3, E) of modal_rs (E, 9, m)."""
+    fields = np.ascontiguousarray(np.asarray(modal_rs).transpose(2, 1, 0))       # (m, 9, E)
+    strain = np.einsum("mke,kij->mije", fields[:, 3:], rs.STRAIN_BASIS)
+    return fields[:, :3], np.ascontiguousarray(strain)
 
 
 def _pair_target(omega, strain, i, j):
-    """d^2 b / dz_i dz_j (E, 3, 3) from ``_mode_fields``, without 3 x 3 products:
+    """d^2 b / dz_i dz_j (E, 3, 3) from ``_mode_fields``, entry by entry on (E,) arrays:
     [a]x S is the cross product of a with the columns of S, and
     1/2 ([a]x [b]x + [b]x [a]x) = 1/2 (a b^T + b a^T) - (a . b) I."""
-    wi, wj = omega[i], omega[j]
-    out = _cross_columns(wi, strain[j]) + _cross_columns(wj, strain[i])
-    out += 0.5 * (wi[:, :, None] * wj[:, None, :] + wj[:, :, None] * wi[:, None, :])
-    out -= np.einsum("ei,ei->e", wi, wj)[:, None, None] * np.eye(3)
-    return out
+    wi, wj, Si, Sj = omega[i], omega[j], strain[i], strain[j]
+    dot = wi[0] * wj[0] + wi[1] * wj[1] + wi[2] * wj[2]
+    out = np.empty((3, 3, wi.shape[1]))
+    for r in range(3):
+        p, n = (r + 1) % 3, (r + 2) % 3          # (a x s)_r = a_p s_n - a_n s_p
+        for c in range(3):
+            entry = out[r, c]
+            np.multiply(wi[p], Sj[n, c], out=entry)
+            entry -= wi[n] * Sj[p, c]
+            entry += wj[p] * Si[n, c]
+            entry -= wj[n] * Si[p, c]
+            entry += 0.5 * (wi[r] * wj[c] + wj[r] * wi[c])
+            if r == c:
+                entry -= dot
+    return np.ascontiguousarray(out.transpose(2, 0, 1))
 
 
-def _cross_columns(a, S):
-    """[a]x S (E, 3, 3) for vectors a (E, 3) and matrices S (E, 3, 3)."""
-    a0, a1, a2 = a[:, 0, None], a[:, 1, None], a[:, 2, None]
-    out = np.empty_like(S)
-    out[:, 0] = a1 * S[:, 2] - a2 * S[:, 1]
-    out[:, 1] = a2 * S[:, 0] - a0 * S[:, 2]
-    out[:, 2] = a0 * S[:, 1] - a1 * S[:, 0]
-    return out
+SNAPSHOT_CHUNK = 16    # poses whose RS coordinates one product makes (rs_snapshots)
 
 
 def rs_snapshots(modal_rs, recon, Z, progress=None):
@@ -93,10 +98,13 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
-    for k, z in enumerate(Z):                                   # one Poisson solve per pose
-        if progress is not None:
-            progress(k / len(Z), f"full RS snapshot {k + 1}/{len(Z)}")
-        out[:, k] = recon.reconstruct(np.asarray(modal_rs) @ z).reshape(-1)
+    flat = np.asarray(modal_rs).reshape(-1, Z.shape[1])         # (E 9, m)
+    for start in range(0, len(Z), SNAPSHOT_CHUNK):              # modal_rs read once a chunk
+        Y = flat @ Z[start:start + SNAPSHOT_CHUNK].T             # (E 9, chunk)
+        for k in range(Y.shape[1]):                             # one Poisson solve per pose
+            if progress is not None:
+                progress((start + k) / len(Z), f"full RS snapshot {start + k + 1}/{len(Z)}")
+            out[:, start + k] = recon.reconstruct(Y[:, k].reshape(-1, 9)).reshape(-1)
     return out
 
 
@@ -213,7 +221,8 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
     out = np.empty((basis.shape[0], start + max(extra, 0)))
     out[:, :start] = basis
     norms = np.sqrt(np.einsum("ik,i,ik->k", candidates, m_diag, candidates))
-    residual = candidates - basis @ (basis.T @ (m_diag[:, None] * candidates))
+    # Fortran order: the rank-one updates below run in place (BLAS dger), with no temporary.
+    residual = np.asfortranarray(candidates - basis @ (basis.T @ (m_diag[:, None] * candidates)))
     alive = norms > 0.0
     size = start
     for step in range(max(extra, 0)):
@@ -230,7 +239,8 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
         out[:, size] = vector
         size += 1
         alive[best] = False
-        residual -= np.outer(vector, vector @ (m_diag[:, None] * residual))
+        residual = blas.dger(-1.0, vector, (m_diag * vector) @ residual, a=residual,
+                             overwrite_a=True)
     return out[:, :size]
 
 
@@ -536,7 +546,7 @@ class ReducedRS:
         if self._projection is None:
             raise RuntimeError("exact_q needs the full mesh: use ReducedRS.build or attach_full")
         Z = np.asarray(z, dtype=np.float64)
-        targets = rs.rs_target(np.einsum("ekm,...m->...ek", self._modal_rs, Z).reshape(-1, 9))
+        targets = rs.rs_target(modal_rs_poses(self._modal_rs, Z.reshape(-1, Z.shape[-1])))
         return self._projection.exact_q(targets.reshape(Z.shape[:-1] + (-1, 3, 3)))
 
     def displacement(self, z, rows=None):
@@ -776,13 +786,21 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     return tets, weights, info
 
 
+def modal_rs_poses(modal_rs, Z):
+    """RS coordinates (F E, 9), pose-major, of poses Z (F, m) with modal_rs (E, 9, m): one
+    BLAS product (an einsum over these shapes runs several times slower)."""
+    n_tets, _, m = modal_rs.shape
+    y = np.asarray(modal_rs).reshape(-1, m) @ np.asarray(Z, dtype=np.float64).T   # (E 9, F)
+    return np.ascontiguousarray(y.reshape(n_tets, 9, -1).transpose(2, 0, 1)).reshape(-1, 9)
+
+
 def exact_reduced_q(projection, modal_rs, Z, chunk=4):
     """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory)."""
     out = np.empty((len(Z), projection.basis_size))
     n_tets = modal_rs.shape[0]
     for start in range(0, len(Z), chunk):
         Zc = Z[start:start + chunk]
-        y = np.einsum("ekm,fm->fek", modal_rs, Zc).reshape(-1, 9)
+        y = modal_rs_poses(modal_rs, Zc)                                  # (F E, 9)
         out[start:start + chunk] = projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets,
                                                                                3, 3))
     return out

@@ -314,9 +314,33 @@ def _strain_matrix(y):
 
 
 def rs_target(y):
-    """Per-tet target displacement gradients b (E, 3, 3) = exp(omega)(I + epsilon) - I."""
+    """Per-tet target displacement gradients b (E, 3, 3) = exp(omega)(I + epsilon) - I.
+
+    Written entry by entry on contiguous (E,) arrays, b = (R - I) + eps + (R - I) eps with
+    R - I = a [omega]x + b_t (omega omega^T - t^2 I) (Rodrigues; a, b_t as in
+    ``exp_rotation``): the full-RS reconstruction and the reduced stage's training call this
+    on every tet hundreds of times, and stacks of 3 x 3 products cost twice as much. Forming
+    R - I directly also keeps small rotations free of the 1 - cos cancellation."""
     y = np.asarray(y, dtype=np.float64).reshape(-1, 9)
-    return exp_rotation(y[:, :3]) @ _strain_matrix(y) - np.eye(3)
+    w0, w1, w2, e00, e01, e02, e11, e12, e22 = np.ascontiguousarray(y.T)
+    sq0, sq1, sq2 = w0 * w0, w1 * w1, w2 * w2
+    a, b = _rodrigues_coefficients(np.sqrt(sq0 + sq1 + sq2))
+    aw0, aw1, aw2 = a * w0, a * w1, a * w2
+    b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
+    turn = ((-b * (sq1 + sq2), b01 - aw2, b02 + aw1),           # R - I, row by row
+            (b01 + aw2, -b * (sq0 + sq2), b12 - aw0),
+            (b02 - aw1, b12 + aw0, -b * (sq0 + sq1)))
+    eps = ((e00, e01, e02), (e01, e11, e12), (e02, e12, e22))
+    out = np.empty((3, 3, len(y)))
+    for i in range(3):                       # nine entries, each a sum over (E,) arrays
+        for j in range(3):
+            entry = out[i, j]
+            np.multiply(turn[i][0], eps[0][j], out=entry)
+            entry += turn[i][1] * eps[1][j]
+            entry += turn[i][2] * eps[2][j]
+            entry += turn[i][j]
+            entry += eps[i][j]
+    return np.ascontiguousarray(out.transpose(2, 0, 1))
 
 
 def rs_target_jacobian(y):
