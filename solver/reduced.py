@@ -215,20 +215,30 @@ def _mass_orthonormal(W, m_diag):
     return scipy.linalg.solve_triangular(scipy.linalg.cholesky(gram), W.T, trans="T").T
 
 
+RECOMPUTE_FRACTION = 1e-4   # recompute a downdated norm below this share of its last exact one
+
+
 def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
-    """Append up to ``extra`` M-orthonormal vectors from candidates, largest residual first."""
+    """Append up to ``extra`` M-orthonormal vectors from candidates, largest residual first.
+
+    The candidates' remaining squared M-norms are downdated after each pick (minus the squared
+    coefficient on the new vector) and recomputed for a column once its value has fallen below
+    RECOMPUTE_FRACTION of its last exact one, as LAPACK's pivoted QR does: the downdate then
+    never loses more than a few digits, far from the ``drop_tol`` decision."""
     start = basis.shape[1]
-    out = np.empty((basis.shape[0], start + max(extra, 0)))
+    out = np.empty((basis.shape[0], start + max(extra, 0)), order="F")
     out[:, :start] = basis
     norms = np.sqrt(np.einsum("ik,i,ik->k", candidates, m_diag, candidates))
     # Fortran order: the rank-one updates below run in place (BLAS dger), with no temporary.
     residual = np.asfortranarray(candidates - basis @ (basis.T @ (m_diag[:, None] * candidates)))
+    remaining2 = np.einsum("ik,i,ik->k", residual, m_diag, residual)
+    exact2 = remaining2.copy()                 # each column's last exactly computed value
     alive = norms > 0.0
     size = start
     for step in range(max(extra, 0)):
         if progress is not None:
             progress(0.8 + 0.2 * step / extra, f"orthonormalising basis ({step}/{extra})")
-        remaining = np.sqrt(np.einsum("ik,i,ik->k", residual, m_diag, residual))
+        remaining = np.sqrt(np.maximum(remaining2, 0.0))
         alive &= remaining > drop_tol * norms                  # near-dependent: drop for good
         if not alive.any():
             break
@@ -239,8 +249,13 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
         out[:, size] = vector
         size += 1
         alive[best] = False
-        residual = blas.dger(-1.0, vector, (m_diag * vector) @ residual, a=residual,
-                             overwrite_a=True)
+        coefficients = (m_diag * vector) @ residual
+        residual = blas.dger(-1.0, vector, coefficients, a=residual, overwrite_a=True)
+        remaining2 -= coefficients * coefficients
+        stale = np.flatnonzero(alive & (remaining2 < RECOMPUTE_FRACTION * exact2))
+        if len(stale):
+            part = residual[:, stale]
+            remaining2[stale] = exact2[stale] = np.einsum("ik,i,ik->k", part, m_diag, part)
     return out[:, :size]
 
 
@@ -384,6 +399,7 @@ class ReducedProjection:
         # B (B^T L B)^-1 (3N, rB): P_e and the exact fit then need no per-call solve.
         self.solved_basis = scipy.linalg.cho_solve(self.gram_factor, self.basis.T).T
         self._gradients = fem.shape_gradients(self.X, self.T)              # (E, 4, 3)
+        self._linear_map = None                 # (modal_rs it was made for, A)
 
     @property
     def basis_size(self):
@@ -428,9 +444,14 @@ class ReducedProjection:
         For modal_rs = Q W these targets are grad(w_i), so this is the L-projection of W on B
         (the identity on W's own columns when B starts with them).
         """
+        if self._linear_map is not None and self._linear_map[0] is modal_rs:
+            return self._linear_map[1]          # training and ``ReducedRS.build`` both ask
+        source = modal_rs
         modal_rs = np.asarray(modal_rs, dtype=np.float64)
-        linear = np.einsum("ij,ejm->mei", LINEAR_TARGET, modal_rs)               # (m, E, 9)
-        return self._exact_q_batch(linear.reshape(len(linear), -1, 3, 3)).T  # also for m = 1
+        linear = modal_rs.transpose(2, 0, 1) @ LINEAR_TARGET.T                   # (m, E, 9)
+        A = self._exact_q_batch(linear.reshape(len(linear), -1, 3, 3)).T     # also for m = 1
+        self._linear_map = (source, A)
+        return A
 
 
 # ---------------------------------------------------------------------------------------------
