@@ -211,31 +211,39 @@ def test_follow_selected_bones_makes_the_follow_group_from_their_weights(ext):
 
 def test_a_flicked_ear_stops_at_a_collider_in_its_way(ext):
     """Colliders act on rigged flesh: its contact samples are skinned to the world. A 0.3 m
-    Collision cube waits 3 cm past where the rig stops the flicked ear's tip (frame 10), in its
-    direction of travel. Oracles: the free flesh (collisions off, the control) swings into the
-    cube; with collisions on, no baked vertex gets more than 5 mm into it, and the Follow Rig
-    part still moves exactly with the rig."""
+    Collision cube waits 2.7 cm past where the rig stops the flicked ear's tip (frame 10; 2 mm
+    past the ear's front), in the direction the ear swings (level: the creature is landing
+    then, and the rig's own path goes down past the cube's face, never into it; checked).
+    Oracles: the free flesh (collisions off, the control) overshoots into the cube; with
+    collisions on, no baked vertex enters it, and the Follow Rig part still moves exactly with
+    the rig. (A rig that itself drives flesh deep into a collider can ask for more bending
+    than the modes hold: README, limits.)"""
     obj, rig = prepared_creature()
     rest = vertices(obj)
     tip = (rest[:, 0] > 0.1) & (rest[:, 2] > creature.EAR_TOP - 1e-6)
     frames = list(range(1, 37))
     rigged = world(obj, rig_only(obj, frames))
     stop = rigged[9, tip].mean(axis=0)                              # frame 10
-    travel = stop - rigged[8, tip].mean(axis=0)
-    travel /= np.linalg.norm(travel)
+    swing = stop - rigged[8, tip].mean(axis=0)
+    swing[2] = 0.0                                                  # the hop is vertical
+    swing /= np.linalg.norm(swing)
     half = 0.15
-    centre = stop + (0.03 + half) * travel
+    centre = stop + (0.027 + half) * swing
     bpy.ops.mesh.primitive_cube_add(size=2 * half, location=tuple(centre))
     cube = bpy.context.active_object
     cube.modifiers.new("Collision", 'COLLISION')
     cube.collision.thickness_outer = 0.01
 
+    def depth(positions):
+        """(F,) largest depth [m] of any of the world positions (F, n, 3) inside the cube."""
+        return (half - np.abs(positions - centre).max(axis=2)).max(axis=1)
+
     def depth_in_cube():
-        """(F,) largest depth [m] of any baked vertex inside the cube at each frame."""
         make_active(obj)
         assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
-        inside = half - np.abs(world(obj, poses(obj, frames)) - centre).max(axis=2)
-        return inside.max(axis=1)
+        return depth(world(obj, poses(obj, frames)))
+
+    assert depth(rigged).max() < 0.0              # the rig alone keeps clear of the cube
 
     obj.rs_elastic.use_collisions = False
     free = depth_in_cube()
@@ -244,6 +252,6 @@ def test_a_flicked_ear_stops_at_a_collider_in_its_way(ext):
     baked = world(obj, poses(obj, frames))
     follow = ext.bridge.scene.group_weights(obj, "Follow Rig") >= 0.5
     print(f"ear into the cube: {free.max():.3f} m free, {stopped.max():.4f} m with collisions")
-    assert free.max() > 0.05
-    assert stopped.max() < 0.005
+    assert free.max() > 0.0
+    assert stopped.max() < 0.0
     assert np.abs(baked[:, follow] - rigged[:, follow]).max() < 1e-5
