@@ -214,9 +214,9 @@ def test_a_flicked_ear_stops_at_a_collider_in_its_way(ext):
     Collision cube waits 2.7 cm past where the rig stops the flicked ear's tip (frame 10; 2 mm
     past the ear's front), in the direction the ear swings (level: the creature is landing
     then, and the rig's own path goes down past the cube's face, never into it; checked).
-    Oracles: the free flesh (collisions off, the control) overshoots into the cube; with
-    collisions on, no baked vertex enters it, and the Follow Rig part still moves exactly with
-    the rig. (A rig that itself drives flesh deep into a collider can ask for more bending
+    Oracles: the free flesh (collisions off, the control) overshoots into the cube or up to it,
+    at least 5 mm further than with collisions on; with them no baked vertex enters it, and
+    the Follow Rig part still moves exactly with the rig. (A rig that itself drives flesh deep into a collider can ask for more bending
     than the modes hold: README, limits.)"""
     obj, rig = prepared_creature()
     rest = vertices(obj)
@@ -252,6 +252,6 @@ def test_a_flicked_ear_stops_at_a_collider_in_its_way(ext):
     baked = world(obj, poses(obj, frames))
     follow = ext.bridge.scene.group_weights(obj, "Follow Rig") >= 0.5
     print(f"ear into the cube: {free.max():.3f} m free, {stopped.max():.4f} m with collisions")
-    assert free.max() > 0.0
+    assert free.max() > stopped.max() + 0.005     # the control: the collider holds it back
     assert stopped.max() < 0.0
     assert np.abs(baked[:, follow] - rigged[:, follow]).max() < 1e-5
