@@ -799,7 +799,7 @@ CASES["dynamics_reference"] = case_dynamics_reference
 def case_pins(surface, meshes=5, edge=0.02):
     """f1 / f_EB of the clamped 1 x 0.1 x 0.1 m cantilever (E 1e6, nu 0.3, rho 1000) on fresh
     fTetWild meshes (edge 0.02 m), end face pinned by the old rule (tet nodes carrying weight
-    for the pinned render vertices) and the new one (``embed.pinned_nodes_from_surface``).
+    for the pinned render vertices) and the new one (``embed.pin_surface``).
     surface: "box" (8 vertices, 12 triangles) or "fine" (40 x 4 x 4 cells)."""
     import igl
     import numpy as np
@@ -817,13 +817,15 @@ def case_pins(surface, meshes=5, edge=0.02):
         Phi = embed.embed_points(X, T, V)
         K, m = fem.stiffness_matrix(X, T, 1e6, 0.3), fem.lumped_masses(X, T, 1000.0)
         pins = dict(old=embed.pinned_nodes_from_vertices(Phi, weights >= 0.5),
-                    new=embed.pinned_nodes_from_surface(X, T, Phi, V, F, weights))
+                    new=embed.pin_surface(X, T, Phi, V, F, weights).nodes)
         for rule, pinned in pins.items():
             f1 = modes.linear_modes(K, m, 1, pinned, rest_positions=X).frequencies_hz[0]
             ratios[rule].append(float(f1 / f_eb))
     return dict(surface=surface, meshes=meshes, seconds=time.perf_counter() - start,
                 old_min=min(ratios["old"]), old_max=max(ratios["old"]),
                 new_min=min(ratios["new"]), new_max=max(ratios["new"]),
+                old_spread=100.0 * (max(ratios["old"]) / min(ratios["old"]) - 1.0),
+                new_spread=100.0 * (max(ratios["new"]) / min(ratios["new"]) - 1.0),
                 old=ratios["old"], new=ratios["new"])
 
 
@@ -832,8 +834,9 @@ def pins_table(rows):
                  "of the pinned vertices) vs new (pinned faces clamp)", rows,
                  [("surface", ("surface", "{}")), ("meshes", ("meshes", "{}")),
                   ("old min", ("old_min", "{:.3f}")), ("old max", ("old_max", "{:.3f}")),
+                  ("old spread %", ("old_spread", "{:.2f}")),
                   ("new min", ("new_min", "{:.3f}")), ("new max", ("new_max", "{:.3f}")),
-                  ("s", ("seconds", "{:.1f}"))])
+                  ("new spread %", ("new_spread", "{:.2f}")), ("s", ("seconds", "{:.1f}"))])
 
 
 CASES["pins"] = case_pins

@@ -41,7 +41,7 @@ import bpy
 import numpy as np
 import scipy.sparse as sp
 
-from ..solver import cache, embed, fem, materials, modes, proxy, reduced, rs, tetmesh
+from ..solver import cache, embed, fem, materials, modes, proxy, reduced, rig, rs, tetmesh
 from . import armature, mesh_cache, scene
 from .jobs import Cancelled, Job
 from .scene import InputError
@@ -87,11 +87,19 @@ class PreparedBody:
     digests: tuple = ("", "")                # content digests of (tet_body, linear_modes)
     energy: materials.ReducedPotential = None   # the energy cubature, if Prepare made one
     energy_key: str = ""
+    # (n, N) csr: the embedding for displacements, with the pinned vertices held by pinned
+    # nodes (embed.SurfacePins.embedding); None: the tet body's own (a free body)
+    pinned_embedding: sp.csr_matrix = None
+
+    @property
+    def displacement_embedding(self):
+        """(n, N) csr mapping node displacements to base-vertex displacements (pins hold)."""
+        return self.tet_body.embedding if self.pinned_embedding is None else self.pinned_embedding
 
     def surface_mode(self, index):
         """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
         w = self.linear_modes.vectors[:, index].reshape(-1, 3)
-        return self.tet_body.embedding @ w
+        return self.displacement_embedding @ w
 
 
 def _modes_to_arrays(m):
@@ -106,6 +114,10 @@ def _modes_from_arrays(a):
 # Version of the automatic basis and cubature sizing and training range (solver.reduced): a
 # reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
 REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
+
+# Version of the pin rule (solver.embed.pin_surface); part of the modes key, so modes pinned
+# under another rule are rebuilt, not reused. Bump it when the rule changes.
+PIN_RULES = "surface pins 2: faces clamp by their tet-surface facets"
 
 # What a stage's file must hold; sizes with the same name must agree (see cache.validate).
 _SCHEMAS = {
@@ -409,6 +421,7 @@ class BodyInputs:
     proxy_triangles: int = 0       # proxy budget (0: automatic, solver.proxy.triangle_budget)
     base_triangles: np.ndarray = None   # (t, 3) triangles of the base mesh (the pin rule reads them)
     pin_weights: np.ndarray = None      # (n,) float32 in [0, 1], None for a free body
+    pins_hold_volume: bool = False      # rigged: the Follow Rig group holds the flesh it paints
     stored_tets: tuple = None      # (nodes, tets) kept in the .blend for tets_key, or None
     fingerprint: dict = None       # what Prepare read (see `fingerprint`)
     youngs: float = 0.0
@@ -429,7 +442,7 @@ class BodyInputs:
 
     def modes_key(self, tets_digest):
         """Key of the modes of the tet mesh whose arrays hash to tets_digest."""
-        pins = ("surface pins", self.pin_weights, self.base_triangles) \
+        pins = (PIN_RULES, self.pin_weights, self.base_triangles, self.pins_hold_volume) \
             if self.pin_weights is not None else "free"
         return cache.content_key("modes", tets_digest, pins, self.youngs, self.poisson,
                                  self.density, self.num_modes)
@@ -531,6 +544,7 @@ def read_inputs(obj, depsgraph, with_material=True):
                              f"'{settings.pin_group}': nothing is left free to move")
         inputs.pin_weights = weights
         inputs.base_triangles = scene.base_triangles(obj)
+        inputs.pins_hold_volume = armature.is_rigged(obj)
     inputs.fingerprint = fingerprint(obj)
     inputs.youngs = settings.youngs_modulus
     inputs.poisson = settings.poisson_ratio
@@ -654,24 +668,34 @@ def tet_stage(inputs, job):
     return _cached_stage(inputs, "tets", inputs.tets_key, "", compute, job, same_as_stored)
 
 
-def _pinned_nodes(inputs, tet_body):
-    """Tet nodes held by the pin group's weights (the rule is embed.pinned_nodes_from_surface)."""
+def surface_pins(inputs, tet_body):
+    """embed.SurfacePins of the pin group's weights (the rule is embed.pin_surface), or None for
+    a free body. Cheap next to the modes, and a function of the modes' key: computed again
+    rather than cached."""
+    if inputs.pin_weights is None:
+        return None
     X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
     # fTetWild's surface strays up to the envelope from the mesh: twice that still finds the
     # tet-surface nodes of a painted face (embed.PIN_TOLERANCE is this for the default envelope).
-    return embed.pinned_nodes_from_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
-                                           inputs.pin_weights, threshold=0.5,
-                                           tolerance=2.0 * inputs.envelope)
+    pins = embed.pin_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
+                             inputs.pin_weights, threshold=0.5, tolerance=2.0 * inputs.envelope)
+    if not inputs.pins_hold_volume:
+        return pins
+    # A rig's Follow Rig weights are volumetric, as its springs below 0.5 are
+    # (rig.node_values): flesh inside a part painted to follow the bones follows them too.
+    carried = rig.node_values(Phi, inputs.pin_weights, X, T)[:, 0]
+    return dataclasses.replace(pins, nodes=np.union1d(pins.nodes, np.flatnonzero(carried >= 0.5)))
 
 
-def modes_stage(inputs, tet_body, job, tets_digest=None):
-    """Linear modes for the material and pins: from memory, the disk cache, or eigsh."""
+def modes_stage(inputs, tet_body, job, tets_digest=None, pins=None):
+    """Linear modes for the material and pins (``surface_pins``, computed here if not given):
+    from memory, the disk cache, or eigsh."""
     tets_digest = tets_digest or digest("tets", tet_body)
 
     def compute():
         pinned = None
         if inputs.pin_weights is not None:
-            pinned = _pinned_nodes(inputs, tet_body)
+            pinned = (pins or surface_pins(inputs, tet_body)).nodes
             if len(pinned) >= len(tet_body.nodes):
                 raise InputError(f"The pins of '{inputs.object_name}' hold every tet node: "
                                  "nothing is left free to move")
@@ -776,12 +800,14 @@ def prepare(inputs, job):
     inputs.energy is set; returns a PreparedBody."""
     tet_body = tet_stage(inputs, job)
     tets_digest = digest("tets", tet_body)
-    linear_modes = modes_stage(inputs, tet_body, job, tets_digest)
+    pins = surface_pins(inputs, tet_body)
+    linear_modes = modes_stage(inputs, tet_body, job, tets_digest, pins)
     modes_digest = digest("modes", linear_modes)
     deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest,
                              end=0.99 if inputs.energy is None else 0.9)
     keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
-    body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest))
+    body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest),
+                        pinned_embedding=None if pins is None else pins.embedding)
     if inputs.energy is not None:
         body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99)
         body.energy_key = inputs.energy.key(energy_parent(body))

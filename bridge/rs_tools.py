@@ -20,7 +20,8 @@ class RSTools:
         self.body = body
         self.nodes = body.tet_body.nodes
         self.tets = body.tet_body.tets
-        self.embedding = body.tet_body.embedding
+        self.embedding = body.tet_body.embedding            # positions: base = embedding @ nodes
+        self.displacement_embedding = body.displacement_embedding   # displacements; pins hold
 
     @functools.cached_property
     def pinned_nodes(self):
@@ -61,11 +62,11 @@ class RSTools:
         """Φ B (3n, rB): base-vertex displacement per reduced coordinate, node-major rows."""
         B = self.deformer.basis
         N, rB = len(self.nodes), B.shape[1]
-        return (self.embedding @ B.reshape(N, 3 * rB)).reshape(-1, rB)
+        return (self.displacement_embedding @ B.reshape(N, 3 * rB)).reshape(-1, rB)
 
     def surface(self, node_displacement):
         """(n, 3) base-vertex displacement of a node displacement (N, 3)."""
-        return self.embedding @ node_displacement
+        return self.displacement_embedding @ node_displacement
 
 
 def for_object(obj):

@@ -35,8 +35,11 @@ def interpolate_poses(tools, points_a, points_b, ts, pins_fixed):
     mean_a = weights @ (nodes_a - X) / weights.sum()
     mean_b = weights @ (nodes_b - X) / weights.sum()
 
+    rest = tools.embedding @ X
+
     def surface(y, mean):
-        return tools.embedding @ (X + recon.reconstruct(y, mean_displacement=mean))
+        # Displacements through the pinned embedding, so pinned vertices stay exactly at rest.
+        return rest + tools.displacement_embedding @ recon.reconstruct(y, mean_displacement=mean)
 
     residual_a = points_a - surface(y_a, mean_a)
     residual_b = points_b - surface(y_b, mean_b)
@@ -112,7 +115,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
             ts = np.arange(1, self.count + 1) / (self.count + 1)
         pinned = tools.pinned_nodes
         rest = scene.base_vertices(obj)
-        pin_rows = tools.embedding[:, pinned].getnnz(axis=1) > 0 if len(pinned) else None
+        pin_rows = tools.displacement_embedding[:, pinned].getnnz(axis=1) > 0 if len(pinned) else None
         pins_fixed = pin_rows is not None and all(
             np.abs(p[pin_rows] - rest[pin_rows]).max(initial=0.0) < 1e-9 for p in (points_a, points_b))
         poses, inverted = interpolate_poses(tools, points_a, points_b, ts, pins_fixed)

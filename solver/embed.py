@@ -11,6 +11,8 @@ vertex at rest; the affine extension reproduces it exactly (Phi @ X == P up to r
 follows the tet's deformation, which is what the surface did when it was inside the envelope.
 """
 
+import dataclasses
+
 import igl
 import numpy as np
 import scipy.sparse as sp
@@ -59,39 +61,122 @@ def pinned_nodes_from_vertices(Phi, vertex_mask):
 PIN_TOLERANCE = 2e-3
 
 
-def pinned_nodes_from_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5,
-                              tolerance=PIN_TOLERANCE):
-    """-> (p,) int64 sorted unique tet-node indices to hold fixed.
-    X (N,3) tet nodes, T (E,4) tets, Phi (n,N) csr embedding of the render vertices,
-    vertices (n,3) render-mesh vertices in the same space as X, triangles (m,3) int render triangles,
-    weights (n,) pin weights in [0,1].
+@dataclasses.dataclass(frozen=True)
+class SurfacePins:
+    """What a pin group holds (``pin_surface``).
+
+    nodes: (p,) int64 sorted unique tet nodes held fixed.
+    embedding: (n, N) csr, Phi with the row of every clamped render vertex (a pinned vertex of a
+        pinned face) moved onto the pinned tet-surface facet nearest to it. Use it for
+        displacements (``embedding @ u``, u (N, 3)): a pinned vertex then moves exactly as its
+        pinned nodes do, i.e. not at all. Its clamped rows are not exact at rest (the vertex
+        sits up to about one tet edge from that facet), so map positions with the exact Phi.
+    clamped: (k,) int64 render vertices whose rows were moved.
+    """
+    nodes: np.ndarray
+    embedding: sp.csr_matrix
+    clamped: np.ndarray
+
+
+def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, tolerance=PIN_TOLERANCE):
+    """-> SurfacePins: the tet nodes a pin group holds and the embedding that holds its vertices.
+
+    X (N,3) tet nodes, T (E,4) tets, Phi (n,N) csr exact embedding of the render vertices
+    (``embed_points``), vertices (n,3) render vertices in the same space as X, triangles (m,3)
+    int render triangles, weights (n,) pin weights in [0,1].
 
     Rule: a render vertex is pinned when its weight >= threshold; a render face is pinned when
-    all its vertices are pinned. The pinned tet nodes are
-    (a) every node that carries weight for a pinned render vertex (``pinned_nodes_from_vertices``),
-        so the pinned render vertices hold exactly, and
-    (b) every node on the tet mesh's boundary whose distance to the pinned faces is at most its
-        distance to the whole render surface plus ``tolerance`` x the render mesh's bounding-box
-        diagonal (see PIN_TOLERANCE): the nodes whose nearest part of the surface is painted.
-    Interior nodes are never added by (b), so nodes behind a pinned face stay free. Distances are
-    Euclidean in the given space, so the rule does not depend on the body's orientation or scale.
+    all its vertices are pinned.
+    (a) A tet node on the tet mesh's boundary is pinned when its distance to the pinned faces is
+        at most its distance to the whole render surface plus ``tolerance`` x the render mesh's
+        bounding-box diagonal (see PIN_TOLERANCE): the nodes whose nearest part of the surface
+        is painted. So a painted face clamps as a whole and a painted strip holds the strip.
+    (b) A pinned vertex of a pinned face is held by the tet-surface facet (all three nodes
+        pinned by (a)) nearest to it, if one lies within a mean boundary edge: its embedding row
+        moves onto that facet, so it holds exactly and no node behind the face is pinned.
+    (c) Any other pinned vertex (painted alone or along a line, or with no pinned facet near
+        it) is held by pinning every node of its tet (``pinned_nodes_from_vertices``).
+    Interior nodes are pinned only by (c), so nodes behind a pinned face stay free. Distances
+    are Euclidean in the given space: the rule does not depend on the body's pose or scale.
     """
     X = np.ascontiguousarray(X, dtype=np.float64)
+    T = np.ascontiguousarray(T, dtype=np.int64)
+    Phi = sp.csr_matrix(Phi)
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     pinned_vertex = np.asarray(weights, dtype=np.float64) >= threshold
-    by_vertex = pinned_nodes_from_vertices(Phi, pinned_vertex)
     pinned_faces = triangles[pinned_vertex[triangles].all(axis=1)]
-    if len(pinned_faces) == 0:
-        return by_vertex
-    boundary = np.unique(igl.boundary_facets(np.ascontiguousarray(T, dtype=np.int64))[0])
+    clamped = np.zeros(0, dtype=np.int64)
+    by_face = np.zeros(0, dtype=np.int64)
+    rows = None
+    if len(pinned_faces):
+        facets = np.asarray(igl.boundary_facets(T)[0], dtype=np.int64)
+        by_face = _nodes_nearest_pinned_faces(X, facets, vertices, triangles, pinned_faces,
+                                              tolerance)
+        held = np.zeros(len(X), dtype=bool)
+        held[by_face] = True
+        pinned_facets = facets[held[facets].all(axis=1)]
+        if len(pinned_facets):
+            reach = np.linalg.norm(X[facets] - X[np.roll(facets, 1, axis=1)], axis=2).mean()
+            clamped, rows = _rows_on_facets(X, pinned_facets, vertices,
+                                            np.unique(pinned_faces), reach)
+    by_tet = pinned_vertex.copy()
+    by_tet[clamped] = False
+    nodes = np.union1d(by_face, pinned_nodes_from_vertices(Phi, by_tet)).astype(np.int64)
+    embedding = Phi if rows is None else _replace_rows(Phi, clamped, rows)
+    return SurfacePins(nodes, embedding, clamped)
+
+
+def _nodes_nearest_pinned_faces(X, facets, vertices, triangles, pinned_faces, tolerance):
+    """(q,) tet-surface nodes whose nearest part of the render surface is pinned (rule (a))."""
+    boundary = np.unique(facets)
     points = X[boundary]
     to_pinned = np.sqrt(igl.point_mesh_squared_distance(points, vertices, pinned_faces)[0])
     to_surface = np.sqrt(igl.point_mesh_squared_distance(points, vertices, triangles)[0])
     used = vertices[np.unique(triangles)]
     slack = tolerance * np.linalg.norm(used.max(axis=0) - used.min(axis=0))
-    by_face = boundary[to_pinned <= to_surface + slack]
-    return np.union1d(by_vertex, by_face).astype(np.int64)
+    return boundary[to_pinned <= to_surface + slack]
+
+
+def _rows_on_facets(X, facets, vertices, candidates, reach):
+    """Rule (b): (k,) candidates within ``reach`` of a facet, and their (k, N) csr rows: the
+    barycentric coordinates of the nearest point on the nearest facet (f, 3) of X."""
+    squared, nearest, closest = igl.point_mesh_squared_distance(vertices[candidates], X, facets)
+    near = np.sqrt(squared) <= reach
+    facet = facets[np.asarray(nearest)[near]]                                  # (k, 3)
+    weights = _triangle_coordinates(X[facet], np.asarray(closest)[near])
+    k = len(facet)
+    rows = sp.csr_matrix((weights.ravel(), (np.repeat(np.arange(k), 3), facet.ravel())),
+                         shape=(k, len(X)))
+    rows.eliminate_zeros()
+    return candidates[near].astype(np.int64), rows
+
+
+def _triangle_coordinates(corners, points):
+    """(k, 3) barycentric coordinates of points (k, 3) in triangles corners (k, 3, 3), clipped
+    to the triangle (the points are its nearest points, so only round-off is clipped)."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    e1, e2, d = b - a, c - a, points - a
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = (d * e1).sum(1), (d * e2).sum(1)
+    det = g11 * g22 - g12 * g12
+    det = np.where(det > 0.0, det, np.inf)     # a degenerate facet: its first corner
+    s = (g22 * r1 - g12 * r2) / det
+    t = (g11 * r2 - g12 * r1) / det
+    weights = np.clip(np.column_stack([1.0 - s - t, s, t]), 0.0, None)
+    return weights / weights.sum(axis=1, keepdims=True)
+
+
+def _replace_rows(Phi, row_indices, rows):
+    """Phi (n, N) csr with rows ``row_indices`` (k,) replaced by ``rows`` (k, N)."""
+    keep = np.ones(Phi.shape[0])
+    keep[row_indices] = 0.0
+    scatter = sp.csr_matrix((np.ones(len(row_indices)), (row_indices, np.arange(len(row_indices)))),
+                            shape=(Phi.shape[0], len(row_indices)))
+    out = (sp.diags(keep) @ Phi + scatter @ rows).tocsr()
+    out.eliminate_zeros()
+    out.sort_indices()
+    return out
 
 
 def _containing_tets(X, T, P):

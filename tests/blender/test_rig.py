@@ -184,7 +184,9 @@ def test_follow_weights_below_the_pin_threshold_hold_the_flesh_partly(ext):
     print("belly lag: free {:.4f} m, Follow Rig 0.2 {:.4f} m, 0.45 {:.4f} m".format(*deviations))
     free, light, firm = deviations
     assert 1e-4 < firm < light < free
-    assert firm < 0.7 * free           # 0.48 to 0.5 measured
+    # 0.53 to 0.69 measured on five tet meshes (the Follow Rig region ends where its paint
+    # does: pins no longer hold a tet beyond the painted faces, embed.pin_surface)
+    assert firm < 0.8 * free
 
 
 def test_follow_selected_bones_makes_the_follow_group_from_their_weights(ext):
