@@ -295,31 +295,6 @@ _STRAIN_MAP = np.einsum("rq,kts->rtqsk", np.eye(3), rs.STRAIN_BASIS).reshape(9, 
 # skew(e_i) @ F, row r = _EF_SIGN[i, r] * F[_EF_ROW[i, r]] (a cross product, no matmul).
 _EF_ROW = np.array([[0, 2, 1], [2, 0, 0], [1, 0, 0]])
 _EF_SIGN = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
-_SERIES_BELOW = 1e-2   # angle [rad] below which the Rodrigues coefficients use series
-
-
-def _rodrigues(t2):
-    """Coefficients (a, b, e), each (n,), of R and of the left Jacobian of SO(3).
-
-    t2 = |omega|^2, t = |omega|, K = skew(omega): R = I + a K + b K^2 and
-    J_l = I + b K + e K^2 with a = sin t / t, b = (1 - cos t) / t^2, e = (t - sin t) / t^3.
-    Below 1e-2 rad three-term series (truncation < 1e-13 relative) avoid the cancellation;
-    they are evaluated only where needed (few numpy calls: this runs per evaluation).
-    """
-    small = t2 < _SERIES_BELOW ** 2
-    any_small = small.any()
-    t_sq = np.where(small, 1.0, t2) if any_small else t2
-    t = np.sqrt(t_sq)
-    a = np.sin(t) / t
-    b = (1.0 - np.cos(t)) / t_sq
-    e = (1.0 - a) / t_sq
-    if any_small:
-        s = t2[small]
-        s2 = s * s
-        a[small] = 1.0 - s / 6.0 + s2 / 120.0
-        b[small] = 0.5 - s / 24.0 + s2 / 720.0
-        e[small] = 1.0 / 6.0 - s / 120.0 + s2 / 5040.0
-    return a, b, e
 
 
 def _rs_map(y, jacobian):
@@ -334,7 +309,7 @@ def _rs_map(y, jacobian):
     n = len(y)
     omega = y[:, :3]
     t2 = np.einsum("ni,ni->n", omega, omega)
-    a, b, e = _rodrigues(t2)
+    a, b, e = rs.rodrigues_coefficients(t2)
     K = rs.skew(omega)
     outer = omega[:, :, None] * omega[:, None, :]
     eye = np.eye(3)

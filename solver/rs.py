@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from . import fem
 
-SMALL_ANGLE = 1e-4  # below this Rodrigues' coefficients and their derivatives use Taylor series
+SMALL_ANGLE = 1e-4  # below this the Rodrigues derivatives (exp_rotation_derivative) use series
 TWO_PI = 2.0 * np.pi
 
 # (i, j) of the six strain entries in y[:, 3:], in layout order.
@@ -127,24 +127,44 @@ def skew(v):
     return K
 
 
-def _rodrigues_coefficients(theta):
-    """a = sin t / t, b = (1 - cos t) / t^2 (arrays like theta), Taylor below SMALL_ANGLE."""
-    small = theta < SMALL_ANGLE
-    t = np.where(small, 1.0, theta)  # keeps the unused branch free of 0/0
-    t2 = theta * theta
-    a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
-    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / (t * t))
-    return a, b
+SERIES_BELOW = 1e-2  # angle [rad] below which ``rodrigues_coefficients`` use their series
+
+
+def rodrigues_coefficients(t2):
+    """Coefficients (a, b, e), each shaped like t2, of R and of the left Jacobian of SO(3).
+
+    t2 = |omega|^2 [rad^2], t = |omega|, K = skew(omega): R = I + a K + b K^2 and
+    J_l = I + b K + e K^2 with a = sin t / t, b = (1 - cos t) / t^2, e = (t - sin t) / t^3.
+    Below SERIES_BELOW three-term series (truncation < 1e-13 relative) avoid the cancellation;
+    they are evaluated only where needed. The full-RS map (``rs_target``) and the reduced
+    deformer (``reduced``) share it.
+    """
+    shape = np.shape(t2)
+    t2 = np.asarray(t2, dtype=np.float64).reshape(-1)
+    small = t2 < SERIES_BELOW ** 2
+    any_small = bool(small.any())
+    t_sq = np.where(small, 1.0, t2) if any_small else t2
+    t = np.sqrt(t_sq)
+    a = np.sin(t) / t
+    b = (1.0 - np.cos(t)) / t_sq
+    e = (1.0 - a) / t_sq
+    if any_small:
+        s = t2[small]
+        s2 = s * s
+        a[small] = 1.0 - s / 6.0 + s2 / 120.0
+        b[small] = 0.5 - s / 24.0 + s2 / 720.0
+        e[small] = 1.0 / 6.0 - s / 120.0 + s2 / 5040.0
+    return a.reshape(shape), b.reshape(shape), e.reshape(shape)
 
 
 def exp_rotation(omega):
     """Rotation matrices (E, 3, 3) of rotation vectors omega (E, 3) [rad] (Rodrigues).
 
     R = I + (sin t / t) K + ((1 - cos t) / t^2) K^2, K = skew(omega), t = |omega|; the
-    coefficients switch to their Taylor series below t = 1e-4 (error < 1e-17 there).
+    coefficients switch to their series below SERIES_BELOW (``rodrigues_coefficients``).
     """
     omega = np.asarray(omega, dtype=np.float64)
-    a, b = _rodrigues_coefficients(np.linalg.norm(omega, axis=-1))
+    a, b, _ = rodrigues_coefficients(np.einsum("...i,...i->...", omega, omega))
     K = skew(omega)
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
@@ -324,7 +344,7 @@ def rs_target(y):
     y = np.asarray(y, dtype=np.float64).reshape(-1, 9)
     w0, w1, w2, e00, e01, e02, e11, e12, e22 = np.ascontiguousarray(y.T)
     sq0, sq1, sq2 = w0 * w0, w1 * w1, w2 * w2
-    a, b = _rodrigues_coefficients(np.sqrt(sq0 + sq1 + sq2))
+    a, b, _ = rodrigues_coefficients(sq0 + sq1 + sq2)
     aw0, aw1, aw2 = a * w0, a * w1, a * w2
     b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
     turn = ((-b * (sq1 + sq2), b01 - aw2, b02 + aw1),           # R - I, row by row
