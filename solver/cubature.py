@@ -85,12 +85,10 @@ def pose_extremes(modal_rs, Z, chunk=16):
     # |eps|_F^2 counts the off-diagonal entries (layout xx, xy, xz, yy, yz, zz) twice.
     weights = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
     rotation, strain = np.empty(len(Z)), np.empty(len(Z))
-    flat = np.asarray(modal_rs).reshape(-1, Z.shape[1])     # (E 9, m): one BLAS product per chunk
-    for start in range(0, len(Z), chunk):
-        y = (flat @ Z[start:start + chunk].T).reshape(-1, 9, len(Z[start:start + chunk]))
-        rotation[start:start + chunk] = np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0)
-        strain[start:start + chunk] = np.sqrt(np.einsum("k,ekf->ef", weights,
-                                                        y[:, 3:] ** 2)).max(axis=0)
+    for start, y in rs.warp_poses(modal_rs, Z, chunk):                   # y (E, 9, chunk)
+        rotation[start:start + y.shape[2]] = np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0)
+        strain[start:start + y.shape[2]] = np.sqrt(np.einsum("k,ekf->ef", weights,
+                                                             y[:, 3:] ** 2)).max(axis=0)
     return np.maximum(rotation, 1e-300), np.maximum(strain, 1e-300)
 
 

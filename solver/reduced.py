@@ -98,13 +98,11 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
-    flat = np.asarray(modal_rs).reshape(-1, Z.shape[1])         # (E 9, m)
-    for start in range(0, len(Z), SNAPSHOT_CHUNK):              # modal_rs read once a chunk
-        Y = flat @ Z[start:start + SNAPSHOT_CHUNK].T             # (E 9, chunk)
-        for k in range(Y.shape[1]):                             # one Poisson solve per pose
+    for start, Y in rs.warp_poses(modal_rs, Z, SNAPSHOT_CHUNK):   # Y (E, 9, chunk)
+        for k in range(Y.shape[2]):                                 # one Poisson solve per pose
             if progress is not None:
                 progress((start + k) / len(Z), f"full RS snapshot {start + k + 1}/{len(Z)}")
-            out[:, start + k] = recon.reconstruct(Y[:, k].reshape(-1, 9)).reshape(-1)
+            out[:, start + k] = recon.reconstruct(Y[:, :, k]).reshape(-1)
     return out
 
 
@@ -784,10 +782,12 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
 
 def modal_rs_poses(modal_rs, Z):
     """RS coordinates (F E, 9), pose-major, of poses Z (F, m) with modal_rs (E, 9, m): one
-    BLAS product (an einsum over these shapes runs several times slower)."""
-    n_tets, _, m = modal_rs.shape
-    y = np.asarray(modal_rs).reshape(-1, m) @ np.asarray(Z, dtype=np.float64).T   # (E 9, F)
-    return np.ascontiguousarray(y.reshape(n_tets, 9, -1).transpose(2, 0, 1)).reshape(-1, 9)
+    BLAS product (``rs.warp_poses``; an einsum over these shapes runs several times slower)."""
+    Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+    if len(Z) == 0:
+        return np.empty((0, 9))
+    _, y = next(rs.warp_poses(modal_rs, Z, chunk=len(Z)))                   # (E, 9, F)
+    return np.ascontiguousarray(y.transpose(2, 0, 1)).reshape(-1, 9)
 
 
 def exact_reduced_q(projection, modal_rs, Z, chunk=4):
@@ -806,7 +806,7 @@ def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
     """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
     tets = np.asarray(tets, dtype=np.int64)
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
-    y = (modal_rs[tets].reshape(-1, Z.shape[1]) @ Z.T).reshape(len(tets), 9, len(Z))
+    _, y = next(rs.warp_poses(modal_rs[tets], Z, chunk=len(Z)))           # (k, 9, F)
     y = y.transpose(0, 2, 1).reshape(-1, 9)
     r = (fast_targets(y) - y @ LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
     cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)

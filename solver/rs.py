@@ -102,6 +102,21 @@ def warp_modes(QW, z):
     return np.asarray(QW) @ np.asarray(z, dtype=np.float64)
 
 
+def warp_poses(QW, Z, chunk=16):
+    """Yields (start, Y): RS coordinates Y (E, 9, c) of the poses Z[start:start + c] (F, r).
+
+    ``warp_modes`` for many poses: one BLAS product per ``chunk`` poses (QW (E, 9, r) is read
+    once a chunk, and E x 9 x chunk bounds the memory). Tets-major, so a pose is Y[:, :, k]
+    and per-tet reductions over a chunk are contiguous.
+    """
+    Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+    n_tets, _, r = np.shape(QW)
+    flat = np.asarray(QW).reshape(-1, r)                                    # (E 9, r)
+    for start in range(0, len(Z), chunk):
+        Zc = Z[start:start + chunk]
+        yield start, (flat @ Zc.T).reshape(n_tets, 9, len(Zc))
+
+
 def interpolate(y_a, y_b, t):
     """RS blend (E, 9): (1 - t) y_a + t y_b for a scalar t (0 gives y_a, 1 gives y_b).
 
