@@ -83,13 +83,9 @@ def vertex_weights(obj, bones):
     """(n, b + 1) float64 skinning weights of the base vertices: one column per bone of
     ``bones``, normalised per vertex as the Armature modifier does, and a last column 1 for
     vertices no bone moves (they stay with the object)."""
-    index = {obj.vertex_groups[name].index: k for k, name in enumerate(bones)}
+    groups = [obj.vertex_groups[name].index for name in bones]
     weights = np.zeros((len(obj.data.vertices), len(bones) + 1))
-    for v in obj.data.vertices:          # Blender has no bulk accessor for group weights
-        for g in v.groups:
-            k = index.get(g.group)
-            if k is not None:
-                weights[v.index, k] = g.weight
+    weights[:, :-1] = scene.group_weight_matrix(obj, groups)
     total = weights.sum(axis=1)
     moved = total > 1e-4                  # the modifier's own threshold for "no bone"
     weights[moved] /= total[moved, None]
@@ -116,11 +112,8 @@ def select_bones(rig, names):
 
 def bone_group_weights(obj, bones):
     """(n,) sum over ``bones`` of the vertices' weights in their vertex groups, at most 1."""
-    index = {obj.vertex_groups[name].index for name in bones}
-    weights = np.zeros(len(obj.data.vertices))
-    for v in obj.data.vertices:          # Blender has no bulk accessor for group weights
-        weights[v.index] = sum(g.weight for g in v.groups if g.group in index)
-    return np.minimum(weights, 1.0)
+    groups = [obj.vertex_groups[name].index for name in bones]
+    return np.minimum(scene.group_weight_matrix(obj, groups).sum(axis=1), 1.0)
 
 
 def bone_transforms(obj, bones, blender_scene, frames):

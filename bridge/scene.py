@@ -158,15 +158,26 @@ def vertex_group_mask(obj, group_name):
 
 
 def group_weights(obj, group_name):
-    """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it).
-    Blender has no bulk accessor for group weights, so this walks the memberships once."""
+    """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it)."""
     group = obj.vertex_groups.get(group_name)
     if group is None:
         raise InputError(f"Vertex group '{group_name}' does not exist on '{obj.name}'")
-    index = group.index
-    weights = np.zeros(len(obj.data.vertices))
+    return group_weight_matrix(obj, [group.index])[:, 0]
+
+
+def group_weight_matrix(obj, group_indices):
+    """(n, k) float64 weights of the vertex groups with these indices (k,) over the mesh's
+    vertices (0 outside a group). Blender has no bulk accessor for group weights, so this
+    walks the memberships once, for all the groups at the same time."""
+    column = {int(g): k for k, g in enumerate(group_indices)}
+    rows, columns, values = [], [], []
     for v in obj.data.vertices:
         for g in v.groups:
-            if g.group == index:
-                weights[v.index] = g.weight
+            k = column.get(g.group)
+            if k is not None:
+                rows.append(v.index)
+                columns.append(k)
+                values.append(g.weight)
+    weights = np.zeros((len(obj.data.vertices), len(column)))
+    weights[rows, columns] = values
     return weights
