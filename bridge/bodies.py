@@ -687,15 +687,13 @@ def surface_pins(inputs, tet_body):
     return dataclasses.replace(pins, nodes=np.union1d(pins.nodes, np.flatnonzero(carried >= 0.5)))
 
 
-def modes_stage(inputs, tet_body, job, tets_digest=None, pins=None):
-    """Linear modes for the material and pins (``surface_pins``, computed here if not given):
+def modes_stage(inputs, tet_body, job, tets_digest, pins):
+    """Linear modes for the material and the pins (``surface_pins``; None for a free body):
     from memory, the disk cache, or eigsh."""
-    tets_digest = tets_digest or digest("tets", tet_body)
-
     def compute():
         pinned = None
-        if inputs.pin_weights is not None:
-            pinned = (pins or surface_pins(inputs, tet_body)).nodes
+        if pins is not None:
+            pinned = pins.nodes
             if len(pinned) >= len(tet_body.nodes):
                 raise InputError(f"The pins of '{inputs.object_name}' hold every tet node: "
                                  "nothing is left free to move")
