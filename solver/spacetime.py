@@ -42,6 +42,16 @@ Choices written down here:
   at J ~ 4e10 against 9e5 reachable). So ``solve`` first runs GN with gamma lowered to
   ``WARM_TIGHTNESS`` (``handle_tightness``), raising it by ``WARM_FACTOR`` per stage, and starts
   the real solve from there if that lowers J (history entry "warm").
+- **Out of reach**: a raise of gamma by g should cut the largest handle miss by about g
+  (penalty misses go as 1/gamma once the handles hold). When a stage cuts it by less than
+  sqrt(g) *and* its control energy E_f rose more than ``REACH_FORCING`` times over the last
+  stage that did close in, the handles ask for a shape the modes make only by forcing the
+  body. Measured on a rigged creature whose ear tip was keyed where the ear had to stretch:
+  9 of 40 tet meshes (12 modes) then met the target with 110-500,000 times the control
+  energy and the body thrown up to 1 m off its motion; reachable meshes rose by 1.0-1.3, a
+  360/720 deg keyed twist (not closing in on a spoke, met in angle) by 2.4-3.4. The solve then
+  ends at the last stage that closed in, with the handles at that (softer) gamma, and says so
+  (not converged).
 - **Material**: block coordinate descent, each block never increasing J: (1) Z by GN/LM;
   (2) per mode (lambda_k, d_k) by the exact two-unknown bounded least squares of
   E_f + rho E_m (``fit_material``); a mode whose motion is negligible keeps its values;
@@ -95,6 +105,7 @@ ROUND_TOLERANCE = 1e-3     # a material round lowering J by less than this (rela
 HANDLE_ROUNDS = 6          # method-of-multipliers rounds of ``solve(exact_handles=True)``
 HANDLE_TOLERANCE = 1e-9    # ... stop once every handle is this close (relative to the handles' extent)
 HANDLE_MET = 1e-4          # ... and report the handles met (converged) within this of their extent
+REACH_FORCING = 30.0       # E_f rise that, with the handles not closing in, means "out of reach"
 
 
 class SolveCancelled(Exception):
@@ -910,15 +921,20 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         np.array(initial, dtype=np.float64).reshape(problem.frames, problem.num_modes)
     if problem.fix_start:
         Z[:2] = problem.start_state
-    state = _State(problem, Z, 0.0 if problem.mu is None else float(problem.mu))
-    gn_cap = 50 if iterations is None or optimise_material else int(iterations)
-    if continuation:
-        _warm_start(state, gn_cap, tolerance, callback, should_cancel)
     if optimise_material and problem.external_forces is not None:
         raise ValueError("material optimisation with external forces (a rig's loads) is not "
                          "supported: the forces are in the prepared modes' coordinates")
+    state = _State(problem, Z, 0.0 if problem.mu is None else float(problem.mu))
+    gn_cap = 50 if iterations is None or optimise_material else int(iterations)
+    reach = _warm_start(state, gn_cap, tolerance, callback, should_cancel) if continuation \
+        else None
     if not optimise_material:
-        done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
+        if reach is None or not reach.stalled:
+            done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
+            if reach is not None:
+                reach = reach.judge(state, problem.gamma)
+        if reach is not None and reach.stalled:
+            return reach.give_up(state, callback)
         worst = _meet_handles(state, gn_cap, tolerance, should_cancel) if exact_handles \
             else None
         if worst is not None:       # the multipliers decide: are the handles met?
@@ -929,6 +945,9 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         return _result(state, done, "converged" if done else
                        f"Gauss-Newton did not converge in {gn_cap} steps")
 
+    out_of_reach = []
+    if reach is not None and reach.stalled:     # go on with the handles at the stage that held
+        out_of_reach.append(reach.give_up(state, callback).reason)
     _optimise_z(state, gn_iterations, tolerance, 0, callback, should_cancel)
     _choose_weights(state)
     rounds = 20 if iterations is None else int(iterations)
@@ -947,13 +966,13 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
             break
     _check_cancel(should_cancel)
     z_done = _optimise_z(state, 50, tolerance, rounds + 1, callback, should_cancel)
-    reasons = ([] if rounds_done else
+    reasons = out_of_reach + ([] if rounds_done else
                [f"the material still lowered the objective by {change:.1e} (relative) in "
                 f"round {rounds} of {rounds}: allow more iterations"])
     if not z_done:
         reasons.append("the motion for the final material did not converge in 50 "
                        "Gauss-Newton steps")
-    return _result(state, rounds_done and z_done, "; ".join(reasons) or
+    return _result(state, rounds_done and z_done and not out_of_reach, "; ".join(reasons) or
                    f"converged in {outer} material rounds")
 
 
@@ -962,22 +981,87 @@ def _warm_start(state, iterations, tolerance, callback, should_cancel):
 
     Stages gamma_k = gamma (WARM_TIGHTNESS / t) WARM_FACTOR^k below gamma, t the problem's
     equivalent tightness (``handle_tightness``); each is solved by GN from the previous one.
+    A stage that forced the body without closing in on the targets ends the continuation
+    (module doc, "Out of reach"). Returns the ``_Reach`` (None without handles).
     """
     problem = state.problem
     if not _has(problem.handles) or problem.gamma <= 0.0:
-        return
+        return None
     gamma = problem.gamma * WARM_TIGHTNESS / handle_tightness(problem)
-    Z = state.Z
+    Z, reach = state.Z, None
     while gamma < problem.gamma:
         staged = _State(replace(problem, gamma=gamma), Z.copy(), state.mu)
         _optimise_z(staged, iterations, max(tolerance, WARM_TOLERANCE), None, None,
                     should_cancel)
         state.iterations += staged.iterations
+        reach = _Reach(staged) if reach is None else reach.judge(staged, gamma)
+        if reach.stalled:
+            break
         Z, gamma = staged.Z, gamma * WARM_FACTOR
     value = state.evaluate(Z=Z)
     if Z is not state.Z and value < state.value:
         state.Z, state.value = Z, value
         state.record(0, "warm", callback)
+    return reach
+
+
+class _Reach:
+    """The last continuation stage that held the handles (module doc, "Out of reach").
+
+    Holds that stage's gamma, Z, largest miss [m] and control energy E_f; ``judge`` compares
+    a stage solved at a higher gamma with it, ``give_up`` ends the solve there.
+    """
+
+    def __init__(self, staged):
+        self.gamma, self.Z = staged.problem.gamma, staged.Z.copy()
+        self.miss = _largest_miss(staged.problem, staged.Z, staged.S)
+        self.energy = _stage_energy(staged)
+        self.stalled = False
+
+    def judge(self, staged, gamma):
+        """The reach after ``staged`` (solved at ``gamma``): moved on to it if it closed in on
+        the targets, kept if it did not but cost little, stalled if it forced the body."""
+        miss = _largest_miss(staged.problem, staged.Z, staged.S)
+        met = HANDLE_MET * _handle_extent(staged.problem.handles)
+        if self.miss <= met or miss * np.sqrt(gamma / self.gamma) <= self.miss:
+            return _Reach(staged)
+        self.stalled = _stage_energy(staged) > REACH_FORCING * self.energy
+        return self
+
+    def give_up(self, state, callback):
+        """Set state to the held stage (handles at its gamma); the not-converged result.
+
+        J is now that of the softer gamma, so the history restarts at this entry ("reach").
+        """
+        state.problem = replace(state.problem, gamma=self.gamma)
+        state.Z = self.Z.copy()
+        state.value = state.evaluate()
+        state.history = []
+        state.record(0, "reach", callback)
+        extent = _handle_extent(state.problem.handles)
+        return _result(state, False,
+                       f"the handles ask for a shape the {state.problem.num_modes} modes make "
+                       f"only by forcing the body: they stay up to {self.miss:.2g} m "
+                       f"({self.miss / extent:.1e} of their extent) from their targets; "
+                       "raise Modes and Prepare again, or move the targets")
+
+
+def _stage_energy(staged):
+    """Control energy E_f of a state's Z (its eigenvalues, damping and external forces)."""
+    problem = staged.problem
+    return control_energy(staged.Z, staged.eigenvalues, staged.damping, problem.h,
+                          problem.scheme, problem.external_forces)
+
+
+def _handle_extent(handles):
+    """Largest coordinate span of the handles' rest points and targets [m] (> 0)."""
+    points = np.vstack([handles.rest, handles.targets])
+    return max(float(np.ptp(points, axis=0).max()), 1e-300)
+
+
+def _largest_miss(problem, Z, S):
+    """Largest handle miss |position - target| over the handles [m]."""
+    return float(np.linalg.norm(handle_misses(problem, Z, S), axis=1).max())
 
 
 def _meet_handles(state, iterations, tolerance, should_cancel):
@@ -997,8 +1081,7 @@ def _meet_handles(state, iterations, tolerance, should_cancel):
     if not _has(problem.handles) or problem.gamma <= 0.0:
         return None
     handles = problem.handles
-    points = np.vstack([handles.rest, handles.targets])
-    extent = max(float(np.ptp(points, axis=0).max()), 1e-300)
+    extent = _handle_extent(handles)
     goal = HANDLE_TOLERANCE * extent
     misses = handle_misses(problem, state.Z, state.S)
     shift = np.zeros_like(handles.targets)
