@@ -675,16 +675,14 @@ def surface_pins(inputs, tet_body):
     if inputs.pin_weights is None:
         return None
     X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
+    # A rig's Follow Rig weights are volumetric, as its springs below 0.5 are (rig.node_values).
+    carried = rig.node_values(Phi, inputs.pin_weights, X, T)[:, 0] if inputs.pins_hold_volume \
+        else None
     # fTetWild's surface strays up to the envelope from the mesh: twice that still finds the
     # tet-surface nodes of a painted face (embed.PIN_TOLERANCE is this for the default envelope).
-    pins = embed.pin_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
-                             inputs.pin_weights, threshold=0.5, tolerance=2.0 * inputs.envelope)
-    if not inputs.pins_hold_volume:
-        return pins
-    # A rig's Follow Rig weights are volumetric, as its springs below 0.5 are
-    # (rig.node_values): flesh inside a part painted to follow the bones follows them too.
-    carried = rig.node_values(Phi, inputs.pin_weights, X, T)[:, 0]
-    return dataclasses.replace(pins, nodes=np.union1d(pins.nodes, np.flatnonzero(carried >= 0.5)))
+    return embed.pin_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
+                             inputs.pin_weights, threshold=0.5, tolerance=2.0 * inputs.envelope,
+                             node_weights=carried)
 
 
 def modes_stage(inputs, tet_body, job, tets_digest, pins):

@@ -78,12 +78,15 @@ class SurfacePins:
     clamped: np.ndarray
 
 
-def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, tolerance=PIN_TOLERANCE):
+def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, tolerance=PIN_TOLERANCE,
+                node_weights=None):
     """-> SurfacePins: the tet nodes a pin group holds and the embedding that holds its vertices.
 
     X (N,3) tet nodes, T (E,4) tets, Phi (n,N) csr exact embedding of the render vertices
     (``embed_points``), vertices (n,3) render vertices in the same space as X, triangles (m,3)
-    int render triangles, weights (n,) pin weights in [0,1].
+    int render triangles, weights (n,) pin weights in [0,1]; node_weights (N,) optional: the
+    weights carried into the volume, for a group that paints volume rather than skin (a
+    rig's Follow Rig, ``rig.node_values``).
 
     Rule: a render vertex is pinned when its weight >= threshold; a render face is pinned when
     all its vertices are pinned.
@@ -96,8 +99,11 @@ def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, toleranc
         moves onto that facet, so it holds exactly and no node behind the face is pinned.
     (c) Any other pinned vertex (painted alone or along a line, or with no pinned facet near
         it) is held by pinning every node of its tet (``pinned_nodes_from_vertices``).
-    Interior nodes are pinned only by (c), so nodes behind a pinned face stay free. Distances
-    are Euclidean in the given space: the rule does not depend on the body's pose or scale.
+    (d) With node_weights, every node whose carried weight is >= threshold is pinned too: the
+        flesh inside a painted part follows it.
+    Interior nodes are pinned only by (c) and (d), so without node_weights nodes behind a
+    pinned face stay free. Distances are Euclidean in the given space: the rule does not
+    depend on the body's pose or scale.
     """
     X = np.ascontiguousarray(X, dtype=np.float64)
     T = np.ascontiguousarray(T, dtype=np.int64)
@@ -123,6 +129,8 @@ def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, toleranc
     by_tet = pinned_vertex.copy()
     by_tet[clamped] = False
     nodes = np.union1d(by_face, pinned_nodes_from_vertices(Phi, by_tet)).astype(np.int64)
+    if node_weights is not None:
+        nodes = np.union1d(nodes, np.flatnonzero(np.asarray(node_weights) >= threshold))
     embedding = Phi if rows is None else _replace_rows(Phi, clamped, rows)
     return SurfacePins(nodes, embedding, clamped)
 

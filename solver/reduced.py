@@ -782,11 +782,11 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
 
 def modal_rs_poses(modal_rs, Z):
     """RS coordinates (F E, 9), pose-major, of poses Z (F, m) with modal_rs (E, 9, m): one
-    BLAS product (``rs.warp_poses``; an einsum over these shapes runs several times slower)."""
+    BLAS product (``rs.warp_pose_block``)."""
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     if len(Z) == 0:
         return np.empty((0, 9))
-    _, y = next(rs.warp_poses(modal_rs, Z, chunk=len(Z)))                   # (E, 9, F)
+    y = rs.warp_pose_block(modal_rs, Z)                                    # (E, 9, F)
     return np.ascontiguousarray(y.transpose(2, 0, 1)).reshape(-1, 9)
 
 
@@ -806,7 +806,7 @@ def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
     """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
     tets = np.asarray(tets, dtype=np.int64)
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
-    _, y = next(rs.warp_poses(modal_rs[tets], Z, chunk=len(Z)))           # (k, 9, F)
+    y = rs.warp_pose_block(modal_rs[tets], Z)                             # (k, 9, F)
     y = y.transpose(0, 2, 1).reshape(-1, 9)
     r = (fast_targets(y) - y @ LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
     cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)

@@ -285,3 +285,27 @@ def test_the_rule_does_not_depend_on_the_space():
             assert len(here.clamped) == 0 and (here.embedding != Phi).nnz == 0
         # Either way every band vertex's row lies on pinned nodes only.
         assert np.all(np.isin(here.embedding[np.flatnonzero(weights)].indices, here.nodes))
+
+
+def test_volume_weights_pin_the_flesh_inside_a_painted_part():
+    """Rule (d): with the weights carried into the volume (rig.node_values, as a rig's Follow
+    Rig is), a painted end third pins every node in it, inside too, and nothing beyond it;
+    without them only its tet-surface nodes are pinned. Regular mesh, nodes 0.05 apart, surface
+    vertices 0.025 apart: the paint ends between x = 0.325 and 0.35, the nodes up to 0.30 carry
+    weight 1 and those at 0.35 weight 0."""
+    from solver import rig
+    V, F = bar_surface((40, 4, 4))
+    X, T = meshgen.box_tet_mesh((L, H, H), (20, 2, 2))
+    Phi = embed.embed_points(X, T, V)
+    weights = (V[:, 0] <= L / 3 + 1e-9).astype(np.float64)
+    carried = rig.node_values(Phi, weights, X, T)[:, 0]
+    skin = embed.pin_surface(X, T, Phi, V, F, weights)
+    flesh = embed.pin_surface(X, T, Phi, V, F, weights, node_weights=carried)
+    interior = np.setdiff1d(np.arange(len(X)), boundary_nodes(T))
+    assert len(np.intersect1d(skin.nodes, interior)) == 0
+    inside = np.flatnonzero(X[:, 0] <= L / 3)
+    np.testing.assert_array_equal(flesh.nodes, inside)
+    assert len(np.intersect1d(flesh.nodes, interior)) > 0
+    # The skin rule's result is kept: (d) only adds nodes, and the held vertices are the same.
+    assert np.all(np.isin(skin.nodes, flesh.nodes))
+    np.testing.assert_array_equal(flesh.clamped, skin.clamped)
