@@ -23,7 +23,7 @@ import numpy as np
 import scipy.linalg
 from scipy.optimize import nnls
 
-from . import rs
+from . import rs, threads
 
 DEG = np.pi / 180.0
 
@@ -79,16 +79,21 @@ def training_poses(num_modes, eigenvalues, count, rng, max_rotation=120.0 * DEG,
 def pose_extremes(modal_rs, Z, chunk=16):
     """Largest rotation max_e |omega_e(z)| [rad] and strain max_e |eps_e(z)|_F per pose (F,).
 
-    modal_rs (E, 9, m), Z (F, m); ``chunk`` poses at a time bounds memory (E x 9 x chunk).
+    modal_rs (E, 9, m), Z (F, m); ``chunk`` poses at a time bounds memory (E x 9 x chunk per
+    thread; the chunks run on several threads, ``threads.ordered_map``).
     """
     Z = np.atleast_2d(Z)
     # |eps|_F^2 counts the off-diagonal entries (layout xx, xy, xz, yy, yz, zz) twice.
     weights = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
-    rotation, strain = np.empty(len(Z)), np.empty(len(Z))
-    for start, y in rs.warp_poses(modal_rs, Z, chunk):                   # y (E, 9, chunk)
-        rotation[start:start + y.shape[2]] = np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0)
-        strain[start:start + y.shape[2]] = np.sqrt(np.einsum("k,ekf->ef", weights,
-                                                             y[:, 3:] ** 2)).max(axis=0)
+
+    def extremes(start):
+        y = rs.warp_pose_block(modal_rs, Z[start:start + chunk])          # (E, 9, chunk)
+        return (np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0),
+                np.sqrt(np.einsum("k,ekf->ef", weights, y[:, 3:] ** 2)).max(axis=0))
+
+    parts = threads.ordered_map(extremes, range(0, len(Z), chunk))
+    rotation = np.concatenate([part[0] for part in parts]) if parts else np.empty(0)
+    strain = np.concatenate([part[1] for part in parts]) if parts else np.empty(0)
     return np.maximum(rotation, 1e-300), np.maximum(strain, 1e-300)
 
 

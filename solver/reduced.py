@@ -31,7 +31,7 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg import blas
 
-from . import cubature, fem, rs
+from . import cubature, fem, rs, threads
 
 
 # ---------------------------------------------------------------------------------------------
@@ -94,15 +94,17 @@ SNAPSHOT_CHUNK = 16    # poses whose RS coordinates one product makes (rs_snapsh
 def rs_snapshots(modal_rs, recon, Z, progress=None):
     """Full RS displacements (3N, S) [m] of poses Z (S, m): recon.reconstruct(modal_rs z).
 
-    One Poisson solve per pose (the factor of ``recon`` is reused); pins hold exactly.
+    One Poisson solve per pose (the factor of ``recon`` is reused), the poses of a chunk on
+    several threads (``threads.ordered_map``); pins hold exactly.
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
     for start, Y in rs.warp_poses(modal_rs, Z, SNAPSHOT_CHUNK):   # Y (E, 9, chunk)
-        for k in range(Y.shape[2]):                                 # one Poisson solve per pose
-            if progress is not None:
-                progress((start + k) / len(Z), f"full RS snapshot {start + k + 1}/{len(Z)}")
-            out[:, start + k] = recon.reconstruct(Y[:, :, k]).reshape(-1)
+        if progress is not None:
+            progress(start / len(Z), f"full RS snapshots {start + 1}-{start + Y.shape[2]} "
+                                     f"of {len(Z)}")
+        solved = threads.ordered_map(lambda k: recon.reconstruct(Y[:, :, k]), range(Y.shape[2]))
+        out[:, start:start + Y.shape[2]] = np.stack(solved, axis=-1).reshape(-1, Y.shape[2])
     return out
 
 
@@ -172,9 +174,11 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     Only the ``keep`` terms with the largest volume-weighted target norm |factor b|_V are
     kept (a cheap screen: Psi is a least-squares fit, so a small target cannot give a large
     displacement); keep None keeps them all. Each target is built once: a term is solved when
-    it enters the running top ``keep`` and its column dropped when a larger one displaces it
+    it enters the running top ``keep`` (and still holds its column at the end of its batch of
+    ``threads.worker_count()`` terms) and its column dropped when a larger one displaces it
     (a solve costs about half of building the target on a 98k-tet bar, so this beats
-    screening first and rebuilding the kept targets); memory stays ``keep`` columns of 3N.
+    screening first and rebuilding the kept targets); memory stays ``keep`` columns of 3N
+    plus a batch of targets.
     """
     num_modes = modal_rs.shape[2]
     amplitude = REFERENCE_ANGLE / np.maximum(rs.max_mode_rotations(modal_rs), 1e-300)
@@ -194,15 +198,28 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
         return columns
     held_terms = np.full(slots, -1)                 # the term each column holds
     held_sizes = np.full(slots, -np.inf)
-    for n, term in enumerate(terms):                # one target and one Poisson solve per term
+
+    def sized_target(n):
+        target = scaled_target(*terms[n])
+        return target, np.einsum("e,eab,eab->", recon.volumes, target, target)
+
+    # Terms go in batches, one per thread: their targets are built side by side, the running
+    # top ``keep`` is updated in term order (as one term at a time would), and the batch's
+    # terms that still hold a column are solved side by side.
+    batch = threads.worker_count()
+    for first in range(0, len(terms), batch):
         if progress is not None:
-            progress(0.8 * n / len(terms), f"basis candidate {n + 1}/{len(terms)}")
-        target = scaled_target(*term)
-        size = np.einsum("e,eab,eab->", recon.volumes, target, target)
-        slot = int(np.argmin(held_sizes))           # the smallest kept so far
-        if size > held_sizes[slot]:
-            columns[:, slot] = recon.solve(target).reshape(-1)
-            held_terms[slot], held_sizes[slot] = n, size
+            progress(0.8 * first / len(terms), f"basis candidate {first + 1}/{len(terms)}")
+        numbers = range(first, min(first + batch, len(terms)))
+        built = dict(zip(numbers, threads.ordered_map(sized_target, numbers)))
+        for n, (_, size) in built.items():
+            slot = int(np.argmin(held_sizes))       # the smallest kept so far
+            if size > held_sizes[slot]:
+                held_terms[slot], held_sizes[slot] = n, size
+        solve = [(slot, n) for slot, n in enumerate(held_terms) if n in built]
+        solved = threads.ordered_map(lambda pair: recon.solve(built[pair[1]][0]), solve)
+        for (slot, _), u in zip(solve, solved):
+            columns[:, slot] = u.reshape(-1)
     used = held_terms >= 0
     return columns[:, used][:, np.argsort(held_terms[used])]
 
@@ -791,20 +808,31 @@ def modal_rs_poses(modal_rs, Z):
 
 
 def exact_reduced_q(projection, modal_rs, Z, chunk=4):
-    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory)."""
-    out = np.empty((len(Z), projection.basis_size))
+    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory),
+    the chunks on several threads (``threads.ordered_map``)."""
     n_tets = modal_rs.shape[0]
-    for start in range(0, len(Z), chunk):
+
+    def fit(start):
         Zc = Z[start:start + chunk]
         y = modal_rs_poses(modal_rs, Zc)                                  # (F E, 9)
-        out[start:start + chunk] = projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets,
-                                                                               3, 3))
-    return out
+        return projection.exact_q(rs.rs_target(y).reshape(len(Zc), n_tets, 3, 3))
+
+    fits = threads.ordered_map(fit, range(0, len(Z), chunk))
+    return np.concatenate(fits, axis=0).reshape(len(Z), projection.basis_size)
 
 
 def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
-    """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t."""
+    """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t.
+
+    The tets are split over several threads (``threads.ordered_map``)."""
     tets = np.asarray(tets, dtype=np.int64)
+    parts = np.array_split(tets, max(1, min(threads.worker_count(), len(tets))))
+    return np.hstack(threads.ordered_map(
+        lambda part: _tet_columns(projection, modal_rs, Z, part, scale), parts))
+
+
+def _tet_columns(projection, modal_rs, Z, tets, scale):
+    """``reduced_rs_columns`` on one thread."""
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
     y = rs.warp_pose_block(modal_rs[tets], Z)                             # (k, 9, F)
     y = y.transpose(0, 2, 1).reshape(-1, 9)
