@@ -86,10 +86,11 @@ def pose_extremes(modal_rs, Z, chunk=16):
     # |eps|_F^2 counts the off-diagonal entries (layout xx, xy, xz, yy, yz, zz) twice.
     weights = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
 
-    def extremes(start):
+    def extremes(start):                 # squared norms, maximised, then one sqrt per pose
         y = rs.warp_pose_block(modal_rs, Z[start:start + chunk])          # (E, 9, chunk)
-        return (np.sqrt((y[:, :3] ** 2).sum(axis=1)).max(axis=0),
-                np.sqrt(np.einsum("k,ekf->ef", weights, y[:, 3:] ** 2)).max(axis=0))
+        y *= y
+        return (np.sqrt(y[:, :3].sum(axis=1).max(axis=0)),
+                np.sqrt(np.einsum("k,ekf->ef", weights, y[:, 3:]).max(axis=0)))
 
     parts = threads.ordered_map(extremes, range(0, len(Z), chunk))
     rotation = np.concatenate([part[0] for part in parts]) if parts else np.empty(0)
@@ -99,6 +100,10 @@ def pose_extremes(modal_rs, Z, chunk=16):
 
 # ---------------------------------------------------------------------------------------------
 # Greedy NNLS
+
+QR_DELETE_LIMIT = 16    # Givens deletion while the columns left out are under 1/16 of those kept
+REORTHOGONALISE = 0.5 ** 0.5    # second Gram-Schmidt pass when a column keeps less of its norm
+
 
 def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=None,
                 num_columns=None, refit_every=4, picks_per_block=1, progress=None):
@@ -204,11 +209,13 @@ class _IncrementalNNLS:
         Q = self.Q[:, :k]
         r = Q.T @ column
         v = column - Q @ r
-        correction = Q.T @ v                                          # second Gram-Schmidt pass
-        v -= Q @ correction
-        r += correction
-        rho = np.linalg.norm(v)
-        if rho <= 1e-10 * np.linalg.norm(column):
+        length, rho = np.linalg.norm(column), np.linalg.norm(v)
+        if rho < REORTHOGONALISE * length:      # cancellation: a second pass ("twice is enough")
+            correction = Q.T @ v
+            v -= Q @ correction
+            r += correction
+            rho = np.linalg.norm(v)
+        if rho <= 1e-10 * length:
             return False
         self.A[:, k], self.Q[:, k] = column, v / rho
         self.R[:k, k], self.R[k, k] = r, rho
@@ -228,7 +235,7 @@ class _IncrementalNNLS:
             if len(passive) == k:                # all columns: R is square upper triangular
                 weights = scipy.linalg.solve_triangular(R, Qb)
             else:
-                weights[passive] = _least_squares(R[:, passive], Qb)
+                weights[passive] = _passive_least_squares(R, Qb, passive)
             if np.any(weights[passive] <= 0.0):
                 weights = None
         if weights is None:
@@ -238,7 +245,18 @@ class _IncrementalNNLS:
         return float(np.linalg.norm(self.residual)) / self.norm
 
 
-def _least_squares(A, b):
-    """argmin |A x - b| for A (k, p) of full column rank, by Householder QR."""
-    Q, R = scipy.linalg.qr(A, mode="economic")
-    return scipy.linalg.solve_triangular(R, Q.T @ b)
+def _passive_least_squares(R, b, passive):
+    """argmin |R[:, passive] x - b| for R (k, k) upper triangular of full rank, passive (p,)
+    sorted column indices. With few columns left out, the QR of R[:, passive] is R with those
+    columns deleted by Givens rotations (``scipy.linalg.qr_delete``, O(k^2) per column);
+    otherwise a Householder QR of R[:, passive] (O(k p^2))."""
+    k, p = R.shape[1], len(passive)
+    dropped = np.setdiff1d(np.arange(k), passive)
+    if QR_DELETE_LIMIT * len(dropped) > p:
+        Q, Rp = scipy.linalg.qr(R[:, passive], mode="economic")
+        return scipy.linalg.solve_triangular(Rp, Q.T @ b)
+    Q, Rp = np.eye(k), np.array(R, dtype=np.float64)
+    for column in dropped[::-1]:                 # from the right: indices stay valid
+        Q, Rp = scipy.linalg.qr_delete(Q, Rp, int(column), 1, which="col", overwrite_qr=True,
+                                       check_finite=False)
+    return scipy.linalg.solve_triangular(Rp[:p], (Q.T @ b)[:p])

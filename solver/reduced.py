@@ -99,12 +99,15 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
-    for start, Y in rs.warp_poses(modal_rs, Z, SNAPSHOT_CHUNK):   # Y (E, 9, chunk)
+    n_tets = np.shape(modal_rs)[0]
+    for start in range(0, len(Z), SNAPSHOT_CHUNK):
+        count = min(SNAPSHOT_CHUNK, len(Z) - start)
         if progress is not None:
-            progress(start / len(Z), f"full RS snapshots {start + 1}-{start + Y.shape[2]} "
+            progress(start / len(Z), f"full RS snapshots {start + 1}-{start + count} "
                                      f"of {len(Z)}")
-        solved = threads.ordered_map(lambda k: recon.reconstruct(Y[:, :, k]), range(Y.shape[2]))
-        out[:, start:start + Y.shape[2]] = np.stack(solved, axis=-1).reshape(-1, Y.shape[2])
+        Y = modal_rs_poses(modal_rs, Z[start:start + count]).reshape(count, n_tets, 9)
+        solved = threads.ordered_map(lambda k: recon.reconstruct(Y[k]), range(count))
+        out[:, start:start + count] = np.stack(solved, axis=-1).reshape(-1, count)
     return out
 
 
@@ -798,13 +801,11 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
 
 
 def modal_rs_poses(modal_rs, Z):
-    """RS coordinates (F E, 9), pose-major, of poses Z (F, m) with modal_rs (E, 9, m): one
-    BLAS product (``rs.warp_pose_block``)."""
+    """RS coordinates (F E, 9), pose-major (each pose's (E, 9) block contiguous), of poses
+    Z (F, m) with modal_rs (E, 9, m): one BLAS product, Z (QW)^T."""
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
-    if len(Z) == 0:
-        return np.empty((0, 9))
-    y = rs.warp_pose_block(modal_rs, Z)                                    # (E, 9, F)
-    return np.ascontiguousarray(y.transpose(2, 0, 1)).reshape(-1, 9)
+    modal_rs = np.asarray(modal_rs)
+    return (Z @ modal_rs.reshape(-1, modal_rs.shape[2]).T).reshape(-1, 9)
 
 
 def exact_reduced_q(projection, modal_rs, Z, chunk=4):
