@@ -106,22 +106,11 @@ def warp_pose_block(QW, Z):
     """RS coordinates Y (E, 9, F) of the poses Z (F, r), tets-major (a pose is Y[:, :, k]).
 
     ``warp_modes`` for many poses in one BLAS product (an einsum over these shapes runs several
-    times slower); memory E x 9 x F, so chunk long pose lists (``warp_poses``).
+    times slower); memory E x 9 x F, so callers chunk long pose lists.
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     n_tets, _, r = np.shape(QW)
     return (np.asarray(QW).reshape(-1, r) @ Z.T).reshape(n_tets, 9, len(Z))
-
-
-def warp_poses(QW, Z, chunk=16):
-    """Yields (start, Y): ``warp_pose_block`` of the poses Z[start:start + chunk] (F, r).
-
-    QW (E, 9, r) is read once a chunk, and E x 9 x chunk bounds the memory. Tets-major, so
-    per-tet reductions over a chunk are contiguous.
-    """
-    Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
-    for start in range(0, len(Z), chunk):
-        yield start, warp_pose_block(QW, Z[start:start + chunk])
 
 
 def interpolate(y_a, y_b, t):

@@ -386,13 +386,14 @@ def test_tet_neighbours_share_exactly_the_opposite_face():
     assert (neighbours < 0).sum() == len(igl.boundary_facets(T)[0])
 
 
-def test_warp_poses_gives_warp_modes_of_every_pose_in_chunks():
+def test_warp_pose_block_gives_warp_modes_of_every_pose_in_chunks():
     """Oracle: warp_modes pose by pose. Chunks of 4 over 10 poses (the last one short)."""
     rng = np.random.default_rng(11)
     QW = rng.normal(size=(7, 9, 3))
     Z = rng.normal(size=(10, 3))
     seen = []
-    for start, Y in rs.warp_poses(QW, Z, chunk=4):
+    for start in range(0, 10, 4):
+        Y = rs.warp_pose_block(QW, Z[start:start + 4])
         assert Y.shape == (7, 9, min(4, 10 - start))
         for k in range(Y.shape[2]):
             np.testing.assert_allclose(Y[:, :, k], rs.warp_modes(QW, Z[start + k]), atol=1e-14)
