@@ -932,7 +932,7 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         if reach is None or not reach.stalled:
             done = _optimise_z(state, gn_cap, tolerance, None, callback, should_cancel)
             if reach is not None:
-                reach = reach.judge(state, problem.gamma)
+                reach = reach.judge(state)
         if reach is not None and reach.stalled:
             return reach.give_up(state, callback)
         worst = _meet_handles(state, gn_cap, tolerance, should_cancel) if exact_handles \
@@ -994,7 +994,7 @@ def _warm_start(state, iterations, tolerance, callback, should_cancel):
         _optimise_z(staged, iterations, max(tolerance, WARM_TOLERANCE), None, None,
                     should_cancel)
         state.iterations += staged.iterations
-        reach = _Reach(staged) if reach is None else reach.judge(staged, gamma)
+        reach = _Reach(staged) if reach is None else reach.judge(staged)
         if reach.stalled:
             break
         Z, gamma = staged.Z, gamma * WARM_FACTOR
@@ -1018,12 +1018,12 @@ class _Reach:
         self.energy = _stage_energy(staged)
         self.stalled = False
 
-    def judge(self, staged, gamma):
-        """The reach after ``staged`` (solved at ``gamma``): moved on to it if it closed in on
-        the targets, kept if it did not but cost little, stalled if it forced the body."""
+    def judge(self, staged):
+        """The reach after ``staged`` (solved at a higher gamma): moved on to it if it closed in
+        on the targets, kept if it did not but cost little, stalled if it forced the body."""
         miss = _largest_miss(staged.problem, staged.Z, staged.S)
         met = HANDLE_MET * _handle_extent(staged.problem.handles)
-        if self.miss <= met or miss * np.sqrt(gamma / self.gamma) <= self.miss:
+        if self.miss <= met or miss * np.sqrt(staged.problem.gamma / self.gamma) <= self.miss:
             return _Reach(staged)
         self.stalled = _stage_energy(staged) > REACH_FORCING * self.energy
         return self

@@ -369,7 +369,7 @@ def test_a_target_reachable_only_by_forcing_the_body_is_left_where_the_handle_cl
     stage_gamma = problem.gamma * st.WARM_TIGHTNESS / st.handle_tightness(problem)
     stage = st.solve(replace(problem, gamma=stage_gamma), continuation=False,
                      tolerance=st.WARM_TOLERANCE)
-    monkeypatch.setattr(st._Reach, "judge", lambda self, staged, gamma: st._Reach(staged))
+    monkeypatch.setattr(st._Reach, "judge", lambda self, staged: st._Reach(staged))
     forced = st.solve(problem, iterations=60, exact_handles=exact)
     print(f"held: miss {miss:.4e} m (off the circle by {outside:.4e}), E_f "
           f"{result.control_energy:.3g}; forced: miss {forced.handle_residuals.max():.2e} m, "
