@@ -33,7 +33,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-from .ordering import dof_order, nested_dissection, node_graph
+from .cholesky import SupernodalCholesky
+from .ordering import dof_order, nested_dissection_blocks, node_graph
 
 NUM_RIGID = 6
 SHIFT_FRACTION = 1e-6
@@ -41,6 +42,7 @@ DENSE_LIMIT = 600  # free DOFs up to which the dense solver is used
 CLUSTER_RTOL = 1e-8  # eigenvalues this close (relative) form one cluster of repeated values
 EXTRA_PAIRS = 4      # eigenpairs computed beyond the request, so a cluster is not cut in two
 NUM_FIELDS = 16     # fixed test fields that orient the modes (a cluster may not be larger)
+FACTORISATIONS = ("supernodal", "superlu_nd", "superlu_mmd")
 
 
 @dataclass
@@ -90,7 +92,7 @@ def count_near_zero(eigenvalues, rel_tol=1e-6):
 
 
 def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
-                 ordering="auto"):
+                 factorisation="auto"):
     """Lowest ``num_modes`` deformation modes of (K, diag(masses) kron I3).
 
     K: (3N, 3N) sparse symmetric stiffness [N/m]; masses: (N,) lumped node masses [kg];
@@ -99,11 +101,12 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
     independently of the node numbering (see the module docstring). Without pins the body is free
     and its six rigid motions are skipped. With pins nothing is skipped: pins that do not stop
     every rigid motion (one node, or nodes on one line) leave near-zero modes in the result.
-    ordering: the fill-reducing order of the shift-invert factorisation: "nested_dissection"
-    (``solver.ordering.nested_dissection`` of the rest positions; needs them), "mmd" (SuperLU's minimum
-    degree on A^T + A) or "auto" (nested dissection when rest positions are given). Either
-    gives the same modes to round-off; nested dissection uses far less memory and time on
-    large meshes (``solver.ordering``).
+    factorisation: how the shift-invert matrix is factored (``_shifted_solver``): "supernodal"
+    (``solver.cholesky`` over a nested dissection of the rest positions; needs them),
+    "superlu_nd" (SuperLU in that order), "superlu_mmd" (SuperLU's minimum degree) or "auto"
+    (supernodal when rest positions are given). All give the same modes to round-off; on large
+    meshes the supernodal Cholesky is several times faster and nested dissection fills far less
+    than minimum degree (``make bench``, modes rows).
     Returns ``LinearModes`` in ascending order.
     Raises ValueError when nothing can move, the request cannot be met or the mesh is unusable.
     """
@@ -136,13 +139,16 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
     fields = orientation_fields(rest_positions, n_nodes)[free_dofs]
     wanted = num_modes + n_rigid
     k = min(wanted + EXTRA_PAIRS, int(free_dofs.sum()) - 1)
-    if ordering not in ("auto", "mmd", "nested_dissection"):
-        raise ValueError(f"unknown ordering {ordering!r}")
-    if ordering == "nested_dissection" and rest_positions is None:
-        raise ValueError("nested dissection orders by the rest positions: pass them")
-    points = (None if ordering == "mmd" or rest_positions is None
+    if factorisation not in ("auto", *FACTORISATIONS):
+        raise ValueError(f"unknown factorisation {factorisation!r}")
+    if factorisation == "auto":
+        factorisation = "superlu_mmd" if rest_positions is None else "supernodal"
+    elif factorisation != "superlu_mmd" and rest_positions is None:
+        raise ValueError(f"{factorisation} orders by the rest positions: pass them")
+    points = (None if rest_positions is None
               else np.asarray(rest_positions, dtype=np.float64)[free_nodes])
-    vals, vecs = _lowest_eigenpairs(K_free, m_free, k, start=fields[:, 0], points=points)
+    vals, vecs = _lowest_eigenpairs(K_free, m_free, k, start=fields[:, 0], points=points,
+                                    factorisation=factorisation)
     vals, vecs = canonical_basis(vals, vecs, m_free, fields)
     W = np.zeros((3 * n_nodes, num_modes))
     W[free_dofs] = vecs[:, n_rigid:wanted]
@@ -235,11 +241,11 @@ def _check_connectivity(K, pinned):
                          "vertex and would float freely; pin each part or join them")
 
 
-def _lowest_eigenpairs(K, m, k, start, points=None):
+def _lowest_eigenpairs(K, m, k, start, points=None, factorisation="superlu_mmd"):
     """k lowest eigenpairs of K v = lambda diag(m) v; values ascending, vectors M-orthonormal.
 
     start: (n,) ARPACK's start vector (fixed, so the run is reproducible). points: (n / 3, 3)
-    node positions to order the factorisation by nested dissection, or None for SuperLU's MMD.
+    node positions for the nested dissections; factorisation: see ``_shifted_solver``.
     """
     if K.shape[0] <= DENSE_LIMIT:
         s = 1.0 / np.sqrt(m)  # symmetric scaling turns the problem into a standard one
@@ -249,23 +255,33 @@ def _lowest_eigenpairs(K, m, k, start, points=None):
 
     M = sp.diags(m, format="csc")
     sigma = -SHIFT_FRACTION * float(np.mean(K.diagonal() / m))
-    op_inv = spla.LinearOperator(K.shape, matvec=_shifted_solver(K - sigma * M, points),
+    op_inv = spla.LinearOperator(K.shape, matvec=_shifted_solver(K - sigma * M, points,
+                                                                 factorisation),
                                  dtype=np.float64)
     _, vecs = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op_inv, v0=start)
     return _rayleigh_ritz(K, m, vecs)
 
 
-def _shifted_solver(A, points):
-    """b -> A^-1 b for the SPD shifted matrix A (n, n), factored once by SuperLU.
+def _shifted_solver(A, points, factorisation):
+    """b -> A^-1 b for the SPD shifted matrix A (n, n), factored once.
 
-    points None: SuperLU's symmetric minimum degree (on a 41k-tet box it fills like its default
-    COLAMD and solves ~20 % faster). points (n / 3, 3): nested dissection of the nodes
-    (``solver.ordering``), kept exactly (natural order, diagonal pivots: A is SPD, so no pivoting is
-    needed for stability)."""
-    if points is None:
+    "superlu_mmd": SuperLU's symmetric minimum degree (on a 41k-tet box it fills like its
+    default COLAMD and solves ~20 % faster). "superlu_nd": SuperLU in the nested-dissection
+    order of the nodes (``solver.ordering``), kept exactly (natural order, diagonal pivots: A is
+    SPD, so no pivoting is needed for stability). "supernodal": ``solver.cholesky`` on the
+    blocks of that nested dissection (the same order, Cholesky by dense blocks).
+    points: (n / 3, 3) node positions (the nested dissections need them)."""
+    if factorisation == "superlu_mmd":
         lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
         return lu.solve
-    perm = dof_order(nested_dissection(points, node_graph(A)))
+    blocks = nested_dissection_blocks(points, node_graph(A))
+    if factorisation == "supernodal":
+        try:
+            return SupernodalCholesky(A, [dof_order(block) for block in blocks]).solve
+        except np.linalg.LinAlgError:
+            raise ValueError("the stiffness matrix is not positive semi-definite (inverted or "
+                             "degenerate tets?); tetrahedralise the mesh again") from None
+    perm = dof_order(np.concatenate(blocks))
     lu = spla.splu(sp.csc_matrix(A)[perm][:, perm].tocsc(), permc_spec="NATURAL",
                    diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 

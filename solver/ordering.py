@@ -34,6 +34,12 @@ def nested_dissection(points, adjacency, leaf_size=LEAF_SIZE):
     """(N,) node order by geometric nested dissection (module docstring): a permutation p, so
     that node p[0] is numbered first. Deterministic: ties in the median split go to the lower
     half, and nothing is random."""
+    return np.concatenate(nested_dissection_blocks(points, adjacency, leaf_size))
+
+
+def nested_dissection_blocks(points, adjacency, leaf_size=LEAF_SIZE):
+    """``nested_dissection`` as its blocks, in order: a list of non-empty int arrays of node
+    indices (the leaves and separators), for a factorisation by blocks (``solver.cholesky``)."""
     points = np.asarray(points, dtype=np.float64)
     graph = sp.csr_matrix(adjacency)
     if graph.shape != (len(points), len(points)):
@@ -59,7 +65,7 @@ def nested_dissection(points, adjacency, leaf_size=LEAF_SIZE):
         order.append(nodes[left][touches])            # the separator goes last
 
     split(np.arange(len(points)))
-    return np.concatenate(order)
+    return [block for block in order if len(block)]
 
 
 def dof_order(node_order, dofs_per_node=3):

@@ -825,22 +825,26 @@ def exact_reduced_q(projection, modal_rs, Z, chunk=4):
 def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
     """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t.
 
-    The tets are split over several threads (``threads.ordered_map``)."""
+    Column-major, so each column is contiguous; the tets are split over several threads
+    (``threads.ordered_map``), each writing its own columns in place."""
     tets = np.asarray(tets, dtype=np.int64)
-    parts = np.array_split(tets, max(1, min(threads.worker_count(), len(tets))))
-    return np.hstack(threads.ordered_map(
-        lambda part: _tet_columns(projection, modal_rs, Z, part, scale), parts))
+    out = np.empty((len(Z) * projection.basis_size, len(tets)), order="F")
+    bounds = np.linspace(0, len(tets), max(1, min(threads.worker_count(), len(tets))) + 1)
+    parts = list(zip(bounds[:-1].astype(int), bounds[1:].astype(int)))
+    threads.ordered_map(lambda part: _tet_columns(projection, modal_rs, Z, tets[part[0]:part[1]],
+                                                  scale, out[:, part[0]:part[1]]), parts)
+    return out
 
 
-def _tet_columns(projection, modal_rs, Z, tets, scale):
-    """``reduced_rs_columns`` on one thread."""
+def _tet_columns(projection, modal_rs, Z, tets, scale, out):
+    """``reduced_rs_columns`` of ``tets`` (k,) on one thread, into out (F rB, k) column-major."""
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
     y = rs.warp_pose_block(modal_rs[tets], Z)                             # (k, 9, F)
     y = y.transpose(0, 2, 1).reshape(-1, 9)
     r = (fast_targets(y) - y @ LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
-    cols = np.matmul(r, P.transpose(0, 2, 1))                             # (k, F, rB)
+    cols = out.T.reshape(len(tets), len(Z), -1)     # a view: out's columns are contiguous
+    np.matmul(r, P.transpose(0, 2, 1), out=cols)                          # (k, F, rB)
     cols /= scale[None, :, None]
-    return cols.reshape(len(tets), -1).T
 
 
 # ---------------------------------------------------------------------------------------------

@@ -158,6 +158,15 @@ def test_too_many_modes_raises():
         modes.linear_modes(K, m, 0)
 
 
+def test_a_stiffness_that_is_not_positive_semi_definite_raises():
+    X, T = meshgen.box_tet_mesh((3.0, 1.0, 1.0), (12, 4, 4))   # 975 DOFs: the sparse path
+    K, m = fem.stiffness_matrix(X, T, E, NU), fem.lumped_masses(X, T, RHO)
+    pins = np.flatnonzero(X[:, 0] < 1e-9)
+    assert len(modes.linear_modes(K, m, 4, pins, rest_positions=X).eigenvalues) == 4
+    with pytest.raises(ValueError, match="not positive semi-definite"):
+        modes.linear_modes(-K, m, 4, pins, rest_positions=X)
+
+
 def test_disconnected_free_body_raises():
     X1, T1 = meshgen.box_tet_mesh(cells=(2, 1, 1))
     X2, T2 = meshgen.box_tet_mesh(cells=(2, 1, 1), origin=(5.0, 0.0, 0.0))

@@ -2,9 +2,10 @@
 
 Oracles: nested dissection is a permutation, repeatable, and a true dissection (the two halves
 of the top split share no edge; only the separator touches both); on the 41k-tet bar it fills
-SuperLU's factor less than SuperLU's own minimum degree; and the modes computed with it are the
-modes of the minimum-degree solve (eigenvalues within 1e-6 relative, subspaces within 1e-4
-rad), free bodies included.
+SuperLU's factor less than SuperLU's own minimum degree; and the modes computed with it (by
+SuperLU, or by the supernodal Cholesky on its blocks) are the modes of the minimum-degree solve
+(eigenvalues within 1e-6 relative, subspaces within 1e-4 rad), free bodies included; its blocks
+are its order cut into the leaves and separators.
 """
 import numpy as np
 import pytest
@@ -71,23 +72,37 @@ def largest_principal_angle(U, V, m):
     return float(np.arccos(np.clip(s.min(), -1.0, 1.0)))
 
 
+@pytest.mark.parametrize("factorisation", ["superlu_nd", "supernodal"])
 @pytest.mark.parametrize("pinned_bar", [True, False], ids=["pinned", "free"])
-def test_modes_with_nested_dissection_are_the_minimum_degree_modes(pinned_bar):
+def test_modes_with_nested_dissection_are_the_minimum_degree_modes(pinned_bar, factorisation):
     X, T, K, m = bar(8)                                       # 12k tets
     pins = np.flatnonzero(X[:, 0] < 1e-9) if pinned_bar else None
-    old = modes.linear_modes(K, m, 20, pins, rest_positions=X, ordering="mmd")
-    new = modes.linear_modes(K, m, 20, pins, rest_positions=X, ordering="nested_dissection")
+    old = modes.linear_modes(K, m, 20, pins, rest_positions=X, factorisation="superlu_mmd")
+    new = modes.linear_modes(K, m, 20, pins, rest_positions=X, factorisation=factorisation)
     relative = np.abs(new.eigenvalues - old.eigenvalues) / old.eigenvalues
     angle = largest_principal_angle(new.vectors, old.vectors, np.repeat(m, 3))
-    print(f"nested dissection vs minimum degree: eigenvalues within {relative.max():.1e}, "
+    print(f"{factorisation} vs minimum degree: eigenvalues within {relative.max():.1e}, "
           f"largest principal angle {angle:.1e} rad")
     assert relative.max() < 1e-6
     assert angle < 1e-4
 
 
-def test_nested_dissection_needs_the_rest_positions():
+def test_nested_dissection_blocks_are_its_order_in_pieces():
+    X, T, K, _ = bar(4)
+    graph = ordering.node_graph(K)
+    blocks = ordering.nested_dissection_blocks(X, graph, leaf_size=16)
+    np.testing.assert_array_equal(np.concatenate(blocks),
+                                  ordering.nested_dissection(X, graph, leaf_size=16))
+    assert all(len(block) for block in blocks)
+    left = X[:, 0] <= np.median(X[:, 0])                      # the last block: the top separator
+    np.testing.assert_array_equal(np.sort(blocks[-1]),
+                                  np.flatnonzero(left & (graph @ (~left).astype(float) > 0)))
+
+
+@pytest.mark.parametrize("factorisation", ["superlu_nd", "supernodal"])
+def test_nested_dissection_needs_the_rest_positions(factorisation):
     X, T, K, m = bar(2)
     with pytest.raises(ValueError, match="rest positions"):
-        modes.linear_modes(K, m, 4, np.flatnonzero(X[:, 0] < 1e-9), ordering="nested_dissection")
-    with pytest.raises(ValueError, match="unknown ordering"):
-        modes.linear_modes(K, m, 4, None, rest_positions=X, ordering="metis")
+        modes.linear_modes(K, m, 4, np.flatnonzero(X[:, 0] < 1e-9), factorisation=factorisation)
+    with pytest.raises(ValueError, match="unknown factorisation"):
+        modes.linear_modes(K, m, 4, None, rest_positions=X, factorisation="metis")
