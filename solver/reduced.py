@@ -29,7 +29,6 @@ import time
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg import blas
 
 from . import cubature, fem, rs, threads
 
@@ -242,14 +241,18 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
     The candidates' remaining squared M-norms are downdated after each pick (minus the squared
     coefficient on the new vector) and recomputed for a column once its value has fallen below
     RECOMPUTE_FRACTION of its last exact one, as LAPACK's pivoted QR does: the downdate then
-    never loses more than a few digits, far from the ``drop_tol`` decision."""
+    never loses more than a few digits, far from the ``drop_tol`` decision. The candidates
+    themselves are never updated: the new vector v is M-orthogonal to everything before it,
+    so its coefficient on a candidate's residual is v^T M c, read from the candidate as given
+    (one pass over them per pick, where updating them in place took three); only the picked
+    column and stale ones are projected out, twice (classical Gram-Schmidt, twice is enough)."""
     start = basis.shape[1]
     out = np.empty((basis.shape[0], start + max(extra, 0)), order="F")
     out[:, :start] = basis
     norms = np.sqrt(np.einsum("ik,i,ik->k", candidates, m_diag, candidates))
-    # Fortran order: the rank-one updates below run in place (BLAS dger), with no temporary.
-    residual = np.asfortranarray(candidates - basis @ (basis.T @ (m_diag[:, None] * candidates)))
+    residual = candidates - basis @ (basis.T @ (m_diag[:, None] * candidates))
     remaining2 = np.einsum("ik,i,ik->k", residual, m_diag, residual)
+    del residual
     exact2 = remaining2.copy()                 # each column's last exactly computed value
     alive = norms > 0.0
     size = start
@@ -261,20 +264,26 @@ def _pivoted_gram_schmidt(basis, candidates, m_diag, extra, drop_tol, progress):
         if not alive.any():
             break
         best = int(np.argmax(np.where(alive, remaining, -1.0)))
-        vector = residual[:, best] / remaining[best]
-        vector -= out[:, :size] @ (out[:, :size].T @ (m_diag * vector))   # second pass
+        vector = _project_out(out[:, :size], m_diag, candidates[:, best])
         vector /= np.sqrt(vector @ (m_diag * vector))
         out[:, size] = vector
         size += 1
         alive[best] = False
-        coefficients = (m_diag * vector) @ residual
-        residual = blas.dger(-1.0, vector, coefficients, a=residual, overwrite_a=True)
+        coefficients = (m_diag * vector) @ candidates
         remaining2 -= coefficients * coefficients
         stale = np.flatnonzero(alive & (remaining2 < RECOMPUTE_FRACTION * exact2))
         if len(stale):
-            part = residual[:, stale]
+            part = _project_out(out[:, :size], m_diag, candidates[:, stale])
             remaining2[stale] = exact2[stale] = np.einsum("ik,i,ik->k", part, m_diag, part)
     return out[:, :size]
+
+
+def _project_out(Q, m_diag, x):
+    """x (n,) or (n, k) minus its M-projection on the M-orthonormal columns of Q (n, q), in
+    two classical Gram-Schmidt passes."""
+    weights = m_diag if x.ndim == 1 else m_diag[:, None]
+    x = x - Q @ (Q.T @ (weights * x))
+    return x - Q @ (Q.T @ (weights * x))
 
 
 def _append_snapshot_modes(basis, snapshots, m_diag, count, drop_tol):
