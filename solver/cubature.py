@@ -110,7 +110,8 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
     """Greedy sparse non-negative fit target ~ A[:, S] w, w >= 0 (An et al. 2008).
 
     columns: the matrix A (n, K), or a callable ``columns(indices) -> (n, len(indices))`` that
-      computes only the requested columns (then ``num_columns`` = K is required).
+      computes only the requested columns (then ``num_columns`` = K is required). A block it
+      returns is read only until the next call, so the callable may refill one buffer.
     target: (n,). tol: stop when |residual| / |target| <= tol. max_picks: at most this many.
     candidates: size of the random subset of unpicked columns scored per pick (None: all).
     rng: ``np.random.Generator`` (default seeded 0). progress: optional callable(fraction,

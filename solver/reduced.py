@@ -99,12 +99,14 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
     n_tets = np.shape(modal_rs)[0]
+    poses = np.empty((min(SNAPSHOT_CHUNK, len(Z)), 9 * n_tets))     # reused by every chunk
     for start in range(0, len(Z), SNAPSHOT_CHUNK):
         count = min(SNAPSHOT_CHUNK, len(Z) - start)
         if progress is not None:
             progress(start / len(Z), f"full RS snapshots {start + 1}-{start + count} "
                                      f"of {len(Z)}")
-        Y = modal_rs_poses(modal_rs, Z[start:start + count]).reshape(count, n_tets, 9)
+        Y = modal_rs_poses(modal_rs, Z[start:start + count],
+                           out=poses[:count]).reshape(count, n_tets, 9)
         solved = threads.ordered_map(lambda k: recon.reconstruct(Y[k]), range(count))
         out[:, start:start + count] = np.stack(solved, axis=-1).reshape(-1, count)
     return out
@@ -797,8 +799,16 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     remainder = g - Z @ projection.linear_map(modal_rs).T
     target = (remainder / scale[:, None]).reshape(-1)                     # row = F-major (t, r)
 
+    # One buffer for every block of candidate columns: a fresh (F rB, candidates) array per
+    # block cost more in page faults than in the products that fill it.
+    width = 0 if candidates is None else min(int(candidates), len(T))
+    buffer = np.empty((len(Z) * projection.basis_size, width), order="F")
+
     def columns(tets):
-        return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
+        if len(tets) > width:
+            return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
+        return reduced_rs_columns(projection, modal_rs, Z, tets, scale,
+                                  out=buffer[:, :len(tets)])
 
     inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
     tets, weights, history = cubature.greedy_nnls(
@@ -809,12 +819,14 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     return tets, weights, info
 
 
-def modal_rs_poses(modal_rs, Z):
+def modal_rs_poses(modal_rs, Z, out=None):
     """RS coordinates (F E, 9), pose-major (each pose's (E, 9) block contiguous), of poses
-    Z (F, m) with modal_rs (E, 9, m): one BLAS product, Z (QW)^T."""
+    Z (F, m) with modal_rs (E, 9, m): one BLAS product, Z (QW)^T. out: optional C-contiguous
+    (F, 9 E) array to write into (a reused buffer spares the page faults of a fresh one)."""
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     modal_rs = np.asarray(modal_rs)
-    return (Z @ modal_rs.reshape(-1, modal_rs.shape[2]).T).reshape(-1, 9)
+    product = np.matmul(Z, modal_rs.reshape(-1, modal_rs.shape[2]).T, out=out)
+    return product.reshape(-1, 9)
 
 
 def exact_reduced_q(projection, modal_rs, Z, chunk=4):
@@ -831,13 +843,18 @@ def exact_reduced_q(projection, modal_rs, Z, chunk=4):
     return np.concatenate(fits, axis=0).reshape(len(Z), projection.basis_size)
 
 
-def reduced_rs_columns(projection, modal_rs, Z, tets, scale):
+def reduced_rs_columns(projection, modal_rs, Z, tets, scale, out=None):
     """Greedy-NNLS columns (F rB, k) of tets (k,): [P_e vec(r_e(y_e(z_t))) / scale_t]_t.
 
     Column-major, so each column is contiguous; the tets are split over several threads
-    (``threads.ordered_map``), each writing its own columns in place."""
+    (``threads.ordered_map``), each writing its own columns in place. out: optional
+    column-major (F rB, k) array to fill (returned)."""
     tets = np.asarray(tets, dtype=np.int64)
-    out = np.empty((len(Z) * projection.basis_size, len(tets)), order="F")
+    shape = (len(Z) * projection.basis_size, len(tets))
+    if out is None:
+        out = np.empty(shape, order="F")
+    elif out.shape != shape or not out.flags.f_contiguous:
+        raise ValueError(f"out must be a column-major {shape} array")
     bounds = np.linspace(0, len(tets), max(1, min(threads.worker_count(), len(tets))) + 1)
     parts = list(zip(bounds[:-1].astype(int), bounds[1:].astype(int)))
     threads.ordered_map(lambda part: _tet_columns(projection, modal_rs, Z, tets[part[0]:part[1]],
