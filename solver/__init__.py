@@ -4,15 +4,23 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 
 - ``fem``      linear-tetrahedron finite elements: gradient operator G, stiffness K, lumped mass.
 - ``modes``    linear modal analysis (K w = lambda M w), free or pinned bodies.
+- ``ordering`` nested-dissection orders of tet-mesh matrices (fill-reducing, by blocks).
+- ``cholesky`` supernodal sparse Cholesky over those blocks (the modes' shift-invert solves).
 - ``embed``    barycentric embedding of render-mesh vertices in the tet mesh (sparse Phi).
-- ``tetmesh``  fTetWild tetrahedralisation, run in a separate process so a crash cannot kill Blender.
+- ``proxy``    a simplified closed proxy of a dense surface, for fTetWild.
+- ``tetmesh``  fTetWild tetrahedralisation, run in a separate process (``tetwild_worker``) so a
+  crash cannot kill Blender.
 - ``rs``       rotation-strain coordinates: Q, polar/log/exp, Jacobians, Poisson reconstruction Ψ.
 - ``transfer`` carries a pose of the render mesh over to the tet nodes.
 - ``reduced``  reduced RS: the basis B, per-tet projections, the deformer z -> q -> u = B q.
 - ``cubature`` training poses and greedy NNLS cubature (An et al. 2008).
+- ``threads``  ordered parallel map for the reduced stage's per-pose work.
+- ``accuracy`` after a solve: distance of the reduced model from full RS, stretch the targets ask.
 - ``spacetime`` space-time editing with material optimisation (Gauss-Newton on banded systems).
 - ``materials`` linear, StVK and Fung materials on the Cauchy strain; the reduced potential V(s).
 - ``dynamics`` implicit-Euler subspace dynamics in RS coordinates, free or moving frames.
+- ``inversion`` a volume barrier on the RS strain that keeps reduced bodies from inverting.
+- ``rig``      flesh on a rig: elastic motion as a deviation from linear blend skinning.
 - ``contact``  barrier, friction and damping contact of surface samples with mesh colliders.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
