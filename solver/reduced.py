@@ -292,8 +292,7 @@ def _append_snapshot_modes(basis, snapshots, m_diag, count, drop_tol):
     """basis plus up to ``count`` POD directions of the snapshots' part outside its span."""
     if count <= 0 or snapshots.shape[1] == 0:
         return basis
-    residual = snapshots - basis @ (basis.T @ (m_diag[:, None] * snapshots))
-    residual -= basis @ (basis.T @ (m_diag[:, None] * residual))        # second pass
+    residual = _project_out(basis, m_diag, snapshots)
     # Method of snapshots: eigenvectors of the S x S mass Gram matrix give the POD modes.
     gram = residual.T @ (m_diag[:, None] * residual)
     values, vectors = np.linalg.eigh(0.5 * (gram + gram.T))
