@@ -464,16 +464,34 @@ class PoissonReconstruction:
         Free pieces get weighted mean displacement ``mean_displacement`` (3,), default 0;
         pinned nodes get exactly 0.
         """
-        b = np.asarray(b, dtype=np.float64).reshape(-1, 3, 3)
-        weighted = (self.volumes[:, None, None] * b).transpose(0, 2, 1).reshape(-1, 3)
-        rhs = self.gradient.T @ weighted                        # (N, 3): column i from b[:, i, :]
-        u = np.zeros((self.num_nodes, 3))
+        return self.solve_batch([b], mean_displacement)[0]
+
+    def solve_batch(self, b, mean_displacement=None):
+        """Displacements u (k, N, 3) [m] fitting k targets b (k, E, 3, 3) (an array or a
+        sequence of (E, 3, 3) arrays), as ``solve`` each.
+
+        One sparse product and one SuperLU solve with 3k right-hand sides: per pose this
+        costs about half as much as k calls (98k-tet bar, 24 right-hand sides).
+        """
+        count = len(b)
+        rhs = np.empty((self.num_nodes, 3 * count))
+        for f in range(count):        # target by target: a (3E, 3) copy each stays in cache
+            rhs[:, 3 * f:3 * f + 3] = self.right_hand_side(b[f])
+        u = np.zeros((self.num_nodes, 3 * count))
         u[self.solved_nodes] = self.factor.solve(np.ascontiguousarray(rhs[self.solved_nodes]))
+        u = u.reshape(self.num_nodes, count, 3).transpose(1, 0, 2)            # (k, N, 3) view
         target = np.zeros(3) if mean_displacement is None else np.asarray(mean_displacement)
         for piece in self._free_pieces:                        # one loop turn per free body
             w = self.weights[piece]
-            u[piece] += target - w @ u[piece] / w.sum()
+            u[:, piece] += target - np.einsum("n,knc->kc", w, u[:, piece])[:, None] / w.sum()
         return u
+
+    def right_hand_side(self, b):
+        """D^T (V b) (N, 3) for target gradients b (E, 3, 3): column i from b[:, i, :]."""
+        b = np.asarray(b, dtype=np.float64).reshape(len(self.volumes), 3, 3)
+        # Column i of the (3E, 3) operand holds V b[:, i, :] flattened tet-major.
+        weighted = (self.volumes[:, None, None] * b).transpose(0, 2, 1).reshape(-1, 3)
+        return self.gradient.T @ weighted
 
     def reconstruct(self, y, mean_displacement=None):
         """Displacement u (N, 3) [m] of RS coordinates y (E, 9): solve(rs_target(y))."""

@@ -431,3 +431,38 @@ def test_ordered_map_keeps_the_order_and_raises_what_a_call_raises():
 
     with pytest.raises(ValueError, match="seven"):
         threads.ordered_map(fail_on_seven, items, workers=3)
+
+
+def test_row_block_products_match_numpy_whatever_the_thread_count(monkeypatch):
+    """threads.matmul and threads.inner (fixed blocks of rows on several threads) give the
+    plain products, and the same bits on one thread as on three."""
+    from solver import threads
+    rng = np.random.default_rng(11)
+    rows = 2 * threads.ROW_BLOCK + 123                     # two full blocks and a short one
+    A, C = rng.normal(size=(rows, 7)), rng.normal(size=(rows, 5))
+    B, weights = rng.normal(size=(7, 4)), rng.uniform(0.5, 2.0, rows)
+
+    def products(workers):
+        monkeypatch.setattr(threads, "worker_count", lambda: workers)
+        return threads.matmul(A, B), threads.inner(A, C, weights), threads.inner(A, C)
+
+    serial, threaded = products(1), products(3)
+    np.testing.assert_allclose(serial[0], A @ B, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(serial[1], A.T @ (weights[:, None] * C), rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(serial[2], A.T @ C, rtol=1e-12, atol=1e-11)
+    for one, three in zip(serial, threaded):
+        np.testing.assert_array_equal(one, three)
+    out = np.empty((rows, 4), order="F")                  # a column-major target is filled too
+    assert threads.matmul(A, B, out=out) is out
+    np.testing.assert_array_equal(out, serial[0])
+
+
+@pytest.mark.parametrize("count, workers", [(0, 2), (1, 4), (7, 2), (9, 4), (3, 3)])
+def test_even_parts_split_a_range_into_nonempty_consecutive_slices(count, workers):
+    from solver import threads
+    parts = threads.even_parts(count, workers)
+    assert len(parts) == min(count, workers)
+    assert all(part.stop > part.start for part in parts)
+    assert [i for part in parts for i in range(count)[part]] == list(range(count))
+    sizes = [part.stop - part.start for part in parts]
+    assert not sizes or max(sizes) - min(sizes) <= 1
