@@ -42,7 +42,8 @@ def second_order_targets(modal_rs, i, j):
     b = [w]x + eps + [w]x eps + 1/2 [w]x^2 + O(3) with w = sum z_k w^k, eps = sum z_k eps^k, so
     d^2 b / dz_i dz_j = [w^i]x eps^j + [w^j]x eps^i + 1/2 ([w^i]x [w^j]x + [w^j]x [w^i]x).
     """
-    return _pair_target(*_mode_fields(np.asarray(modal_rs)[:, :, [i, j]]), 0, 1)
+    fields = _mode_fields(np.asarray(modal_rs)[:, :, [i, j]])
+    return np.ascontiguousarray(_pair_entries(*fields, 0, 1).transpose(2, 0, 1))
 
 
 def mode_series_targets(modal_rs, i, k):
@@ -51,24 +52,21 @@ def mode_series_targets(modal_rs, i, k):
     b(z e_i) = exp(z [w^i]x)(I + z eps^i) - I = sum_k z^k ([w^i]x^k / k! + [w^i]x^(k-1) eps^i
     / (k-1)!); k = 2 gives 1/2 d^2 b / dz_i^2 of ``second_order_targets``.
     """
-    omega, strain = _mode_fields(np.asarray(modal_rs)[:, :, [i]])
-    K = rs.skew(omega[0].T)
-    power = np.linalg.matrix_power(K, k - 1)                        # [w]x^(k-1), (E, 3, 3)
-    return ((power @ K) / math.factorial(k)
-            + (power @ strain[0].transpose(2, 0, 1)) / math.factorial(k - 1))
+    fields = _mode_fields(np.asarray(modal_rs)[:, :, [i]])
+    return np.ascontiguousarray(_series_entries(*fields, 0, k).transpose(2, 0, 1))
 
 
 def _mode_fields(modal_rs):
-    """Per mode, tets last (contiguous, for ``_pair_target``): omega (m, 3, E) and the strain
+    """Per mode, tets last (contiguous, for ``_pair_entries``): omega (m, 3, E) and the strain
     matrices eps (m, 3, 3, E) of modal_rs (E, 9, m)."""
     fields = np.ascontiguousarray(np.asarray(modal_rs).transpose(2, 1, 0))       # (m, 9, E)
     strain = np.einsum("mke,kij->mije", fields[:, 3:], rs.STRAIN_BASIS)
     return fields[:, :3], np.ascontiguousarray(strain)
 
 
-def _pair_target(omega, strain, i, j):
-    """d^2 b / dz_i dz_j (E, 3, 3) from ``_mode_fields``, entry by entry on (E,) arrays:
-    [a]x S is the cross product of a with the columns of S, and
+def _pair_entries(omega, strain, i, j):
+    """d^2 b / dz_i dz_j entry-major (3, 3, E) from ``_mode_fields``, entry by entry on (E,)
+    arrays: [a]x S is the cross product of a with the columns of S, and
     1/2 ([a]x [b]x + [b]x [a]x) = 1/2 (a b^T + b a^T) - (a . b) I."""
     wi, wj, Si, Sj = omega[i], omega[j], strain[i], strain[j]
     dot = wi[0] * wj[0] + wi[1] * wj[1] + wi[2] * wj[2]
@@ -84,7 +82,22 @@ def _pair_target(omega, strain, i, j):
             entry += 0.5 * (wi[r] * wj[c] + wj[r] * wi[c])
             if r == c:
                 entry -= dot
-    return np.ascontiguousarray(out.transpose(2, 0, 1))
+    return out
+
+
+_NEXT, _AFTER = [1, 2, 0], [2, 0, 1]     # (a x s)_r = a_next s_after - a_after s_next
+
+
+def _series_entries(omega, strain, i, k):
+    """``mode_series_targets`` entry-major (3, 3, E) from ``_mode_fields``:
+    [w]x^(k-1) ([w]x / k + eps) / (k-1)!, the powers as repeated cross products with the
+    columns (no stacks of 3 x 3 products)."""
+    w = omega[i]
+    M = strain[i].copy()
+    M += rs.skew(w.T).transpose(1, 2, 0) / k                        # [w]x / k + eps
+    for _ in range(k - 1):
+        M = w[_NEXT][:, None, :] * M[_AFTER] - w[_AFTER][:, None, :] * M[_NEXT]
+    return M / math.factorial(k - 1)
 
 
 SNAPSHOT_CHUNK = 16    # poses whose RS coordinates one product makes (rs_snapshots)
@@ -112,7 +125,7 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
         # Targets pose by pose: arrays of one pose's size stay in cache (8 poses at once: 40 %
         # slower), then one batched solve per thread.
         solved = threads.ordered_map(lambda part: recon.solve_batch(
-            [rs.rs_target(y) for y in Y[part]]), parts)
+            [rs.rs_target_entries(y) for y in Y[part]], entry_major=True), parts)
         out[:, start:start + count] = np.concatenate(solved).reshape(count, -1).T
     return out
 
@@ -199,8 +212,8 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     def scaled_target(i, j, k):
         if k is None:
             factor = amplitude[i] * amplitude[j] * (0.5 if i == j else 1.0)
-            return factor * _pair_target(*fields, i, j)
-        return amplitude[i] ** k * mode_series_targets(modal_rs, i, k)
+            return factor * _pair_entries(*fields, i, j)
+        return amplitude[i] ** k * _series_entries(*fields, i, k)
 
     slots = len(terms) if keep is None else min(int(keep), len(terms))
     columns = np.empty((3 * recon.num_nodes, slots))
@@ -209,9 +222,10 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     held_terms = np.full(slots, -1)                 # the term each column holds
     held_sizes = np.full(slots, -np.inf)
 
-    def sized_target(n):
+    def sized_target(n):                            # entry-major (3, 3, E) targets throughout
         target = scaled_target(*terms[n])
-        return target, np.einsum("e,eab,eab->", recon.volumes, target, target)
+        flat = target.reshape(9, -1)
+        return target, float(np.einsum("ke,ke->e", flat, flat) @ recon.volumes)
 
     # Terms go in batches of CANDIDATE_BATCH per thread: their targets are built side by side,
     # the running top ``keep`` is updated in term order (as one term at a time would), and the
@@ -228,7 +242,8 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
                 held_terms[slot], held_sizes[slot] = n, size
         fresh = np.flatnonzero(np.isin(held_terms, numbers))      # slots taken in this batch
         solved = threads.ordered_map(lambda part: recon.solve_batch(
-            [built[n][0] for n in held_terms[fresh[part]]]), threads.even_parts(len(fresh)))
+            [built[n][0] for n in held_terms[fresh[part]]], entry_major=True),
+            threads.even_parts(len(fresh)))
         for slot, u in zip(fresh, (u for part in solved for u in part)):
             columns[:, slot] = u.reshape(-1)
     used = held_terms >= 0
@@ -435,23 +450,26 @@ class ReducedProjection:
         P = GB.reshape(len(tets), r, 9) * self.recon.volumes[tets][:, None, None]
         return np.ascontiguousarray(P)
 
-    def exact_q(self, b):
+    def exact_q(self, b, entry_major=False):
         """Reduced coordinates (rB,) or (F, rB) fitting targets b (E, 3, 3) or (F, E, 3, 3).
 
         q = (B^T L B)^-1 B^T G^T V vec(b), the all-tet (no cubature) reduced reconstruction.
-        b may also be (.., E, 9), or a sequence of F (E, 3, 3) targets (then (F, rB)).
+        b may also be (.., E, 9), or a sequence of F (E, 3, 3) targets (then (F, rB)); with
+        ``entry_major``, a sequence of F (3, 3, E) targets (``rs.rs_target_entries``).
         """
-        if not isinstance(b, np.ndarray):
-            return self._exact_q_batch(b)
+        if entry_major or not isinstance(b, np.ndarray):
+            return self._exact_q_batch(b, entry_major)
         b = np.asarray(b, dtype=np.float64)
         single = b.size == 9 * len(self.T)
         q = self._exact_q_batch(b.reshape(-1, len(self.T), 3, 3))
         return q[0] if single else q
 
-    def _exact_q_batch(self, b):
-        """(F, rB) fits of F >= 1 poses' targets b (F, E, 3, 3), or a sequence of (E, 3, 3):
-        the right-hand side of each pose (kept small: one pose at a time), then one product."""
-        rhs = np.stack([self.recon.right_hand_side(target).reshape(-1) for target in b])
+    def _exact_q_batch(self, b, entry_major=False):
+        """(F, rB) fits of F >= 1 poses' targets b (F, E, 3, 3), or a sequence of (E, 3, 3)
+        ((3, 3, E) with ``entry_major``): the right-hand side of each pose (kept small: one
+        pose at a time), then one product."""
+        rhs = np.stack([self.recon.right_hand_side(target, entry_major).reshape(-1)
+                        for target in b])
         return rhs @ self.solved_basis                                          # (F, rB)
 
     def _fit_weighted(self, weighted):
@@ -867,7 +885,7 @@ def exact_reduced_q(projection, modal_rs, Z, chunk=4):
 
     def fit(start):
         y = modal_rs_poses(modal_rs, Z[start:start + chunk]).reshape(-1, n_tets, 9)
-        return projection.exact_q([rs.rs_target(pose) for pose in y])     # pose by pose
+        return projection.exact_q([rs.rs_target_entries(pose) for pose in y], entry_major=True)
 
     fits = threads.ordered_map(fit, range(0, len(Z), chunk))
     return np.concatenate(fits, axis=0).reshape(len(Z), projection.basis_size)

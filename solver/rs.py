@@ -352,6 +352,13 @@ def rs_target(y):
     ``exp_rotation``): the full-RS reconstruction and the reduced stage's training call this
     on every tet hundreds of times, and stacks of 3 x 3 products cost twice as much. Forming
     R - I directly also keeps small rotations free of the 1 - cos cancellation."""
+    return np.ascontiguousarray(rs_target_entries(y).transpose(2, 0, 1))
+
+
+def rs_target_entries(y):
+    """``rs_target`` entry-major: b (3, 3, E), b[i, j] the (E,) array of entry (i, j). The
+    layout it is computed in, and the one ``PoissonReconstruction`` takes with
+    ``entry_major=True`` (no transposed copy either way)."""
     y = np.asarray(y, dtype=np.float64).reshape(-1, 9)
     w0, w1, w2, e00, e01, e02, e11, e12, e22 = np.ascontiguousarray(y.T)
     sq0, sq1, sq2 = w0 * w0, w1 * w1, w2 * w2
@@ -371,7 +378,7 @@ def rs_target(y):
             entry += turn[i][2] * eps[2][j]
             entry += turn[i][j]
             entry += eps[i][j]
-    return np.ascontiguousarray(out.transpose(2, 0, 1))
+    return out
 
 
 def rs_target_jacobian(y):
@@ -431,6 +438,12 @@ class PoissonReconstruction:
         self.gradient = fem.scalar_gradient_operator(X, T)
         self.laplacian = (self.gradient.T @ sp.diags(np.repeat(self.volumes, 3))
                           @ self.gradient).tocsr()
+        # D^T diag(V) with D's rows reordered direction-major, (j, e): for an entry-major
+        # target b (3, 3, E), column i of the right-hand side is this times b[i] flattened.
+        n_tets = len(T)
+        by_direction = np.arange(3 * n_tets).reshape(n_tets, 3).T.reshape(-1)
+        self._weighted_divergence = (self.gradient[by_direction].T
+                                     @ sp.diags(np.tile(self.volumes, 3))).tocsr()
         self.weights = (fem.lumped_masses(X, T, 1.0) if weights is None
                         else np.asarray(weights, dtype=np.float64))
         self.pinned_nodes = np.unique(np.asarray([] if pinned_nodes is None else pinned_nodes,
@@ -466,9 +479,10 @@ class PoissonReconstruction:
         """
         return self.solve_batch([b], mean_displacement)[0]
 
-    def solve_batch(self, b, mean_displacement=None):
+    def solve_batch(self, b, mean_displacement=None, entry_major=False):
         """Displacements u (k, N, 3) [m] fitting k targets b (k, E, 3, 3) (an array or a
-        sequence of (E, 3, 3) arrays), as ``solve`` each.
+        sequence of (E, 3, 3) arrays), as ``solve`` each; with ``entry_major`` the targets
+        are (3, 3, E) (``rs_target_entries``).
 
         One sparse product and one SuperLU solve with 3k right-hand sides: per pose this
         costs about half as much as k calls (98k-tet bar, 24 right-hand sides).
@@ -476,7 +490,7 @@ class PoissonReconstruction:
         count = len(b)
         rhs = np.empty((self.num_nodes, 3 * count))
         for f in range(count):        # target by target: a (3E, 3) copy each stays in cache
-            rhs[:, 3 * f:3 * f + 3] = self.right_hand_side(b[f])
+            rhs[:, 3 * f:3 * f + 3] = self.right_hand_side(b[f], entry_major)
         u = np.zeros((self.num_nodes, 3 * count))
         u[self.solved_nodes] = self.factor.solve(np.ascontiguousarray(rhs[self.solved_nodes]))
         u = u.reshape(self.num_nodes, count, 3).transpose(1, 0, 2)            # (k, N, 3) view
@@ -486,8 +500,13 @@ class PoissonReconstruction:
             u[:, piece] += target - np.einsum("n,knc->kc", w, u[:, piece])[:, None] / w.sum()
         return u
 
-    def right_hand_side(self, b):
-        """D^T (V b) (N, 3) for target gradients b (E, 3, 3): column i from b[:, i, :]."""
+    def right_hand_side(self, b, entry_major=False):
+        """D^T (V b) (N, 3) for target gradients b (E, 3, 3): column i from b[:, i, :].
+        With ``entry_major``, b is (3, 3, E): three sparse products on contiguous rows, three
+        times faster than the tet-major route's transposed copy (98k tets)."""
+        if entry_major:
+            rows = np.asarray(b, dtype=np.float64).reshape(3, -1)
+            return np.stack([self._weighted_divergence @ row for row in rows], axis=1)
         b = np.asarray(b, dtype=np.float64).reshape(len(self.volumes), 3, 3)
         # Column i of the (3E, 3) operand holds V b[:, i, :] flattened tet-major.
         weighted = (self.volumes[:, None, None] * b).transpose(0, 2, 1).reshape(-1, 3)

@@ -5,6 +5,8 @@ its finite-difference-tested Jacobian, central finite differences, embed.embed_p
 linear algebra. The trained deformer is built once per module (about 5 s).
 """
 
+import math
+
 import igl
 import numpy as np
 import pytest
@@ -86,6 +88,28 @@ def test_basis_spans_the_second_order_terms(bar):
         c = recon.solve(reduced.second_order_targets(modal_rs, i, j)).reshape(-1)
         residual = c - B @ (B.T @ (m_diag * c))
         assert np.linalg.norm(residual) < 1e-8 * np.linalg.norm(c)
+
+
+def test_series_targets_are_the_taylor_coefficients_of_the_rs_map(bar):
+    """mode_series_targets (powers as repeated cross products) against matrix powers of
+    [w]x, and against the RS map itself: b(z e_i) minus its series to order 4 is O(z^5)."""
+    modal_rs = bar["modal_rs"]
+    omega, eps = modal_rs[:, :3, 4], modal_rs[:, 3:, 4] @ rs.STRAIN_BASIS.reshape(6, 9)
+    K, eps = rs.skew(omega), eps.reshape(-1, 3, 3)
+    for k in (1, 2, 3, 4):
+        power = np.linalg.matrix_power(K, k - 1)
+        expected = (power @ K) / math.factorial(k) + (power @ eps) / math.factorial(k - 1)
+        np.testing.assert_allclose(reduced.mode_series_targets(modal_rs, 4, k), expected,
+                                   rtol=0, atol=1e-12 * np.abs(expected).max())
+    scale = 1.0 / rs.max_mode_rotations(modal_rs)[4]         # z = scale: 1 rad at most
+
+    def remainder(z):
+        exact = rs.rs_target(z * modal_rs[:, :, 4])
+        series = sum(z ** k * reduced.mode_series_targets(modal_rs, 4, k) for k in (1, 2, 3, 4))
+        return np.abs(exact - series).max()
+
+    ratio = remainder(0.02 * scale) / remainder(0.01 * scale)
+    assert 28.0 < ratio < 36.0                                   # 2^5 = 32
 
 
 def test_basis_cap_keeps_modes_and_drops_dependent_vectors(bar):
