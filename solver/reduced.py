@@ -199,9 +199,9 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     displacement); keep None keeps them all. Each target is built once: a term is solved when
     it enters the running top ``keep`` (and still holds its column at the end of its batch of
     CANDIDATE_BATCH terms per thread) and its column dropped when a larger one displaces it
-    (a solve costs about half of building the target on a 98k-tet bar, so this beats
-    screening first and rebuilding the kept targets); memory stays ``keep`` columns of 3N
-    plus a batch of targets.
+    (screening first would build every kept target twice, which costs more than the few
+    solves of terms displaced later); memory stays ``keep`` columns of 3N plus a batch of
+    targets.
     """
     num_modes = modal_rs.shape[2]
     amplitude = REFERENCE_ANGLE / np.maximum(rs.max_mode_rotations(modal_rs), 1e-300)
@@ -454,8 +454,8 @@ class ReducedProjection:
         """Reduced coordinates (rB,) or (F, rB) fitting targets b (E, 3, 3) or (F, E, 3, 3).
 
         q = (B^T L B)^-1 B^T G^T V vec(b), the all-tet (no cubature) reduced reconstruction.
-        b may also be (.., E, 9), or a sequence of F (E, 3, 3) targets (then (F, rB)); with
-        ``entry_major``, a sequence of F (3, 3, E) targets (``rs.rs_target_entries``).
+        b may also be (.., E, 9), or an iterable of F (E, 3, 3) targets (then (F, rB)); with
+        ``entry_major``, an iterable of F (3, 3, E) targets (``rs.rs_target_entries``).
         """
         if entry_major or not isinstance(b, np.ndarray):
             return self._exact_q_batch(b, entry_major)
@@ -465,21 +465,12 @@ class ReducedProjection:
         return q[0] if single else q
 
     def _exact_q_batch(self, b, entry_major=False):
-        """(F, rB) fits of F >= 1 poses' targets b (F, E, 3, 3), or a sequence of (E, 3, 3)
+        """(F, rB) fits of F >= 1 poses' targets b (F, E, 3, 3), or an iterable of (E, 3, 3)
         ((3, 3, E) with ``entry_major``): the right-hand side of each pose (kept small: one
         pose at a time), then one product."""
         rhs = np.stack([self.recon.right_hand_side(target, entry_major).reshape(-1)
                         for target in b])
         return rhs @ self.solved_basis                                          # (F, rB)
-
-    def _fit_weighted(self, weighted):
-        """(F, rB) exact fits from volume-weighted targets ``weighted`` (E, 3, 3, F), laid out
-        [e, j, i, f] = V_e b[f, e, i, j]: rows (e, j) are those of the gradient operator, and
-        column (i, f) is then the rhs of coordinate i of pose f."""
-        frames = weighted.shape[-1]
-        rhs = np.asarray(self.recon.gradient.T @ weighted.reshape(-1, 3 * frames))  # (N, 3F)
-        rhs = rhs.reshape(self.num_nodes, 3, frames).transpose(2, 0, 1).reshape(frames, -1)
-        return threads.inner(rhs.T, self.solved_basis)                          # (F, rB)
 
     def linear_map(self, modal_rs):
         """(rB, m) exact reduced coordinates of the linear targets [omega^i]x + eps^i per mode.
@@ -491,18 +482,9 @@ class ReducedProjection:
             return self._linear_map[1]          # training and ``ReducedRS.build`` both ask
         source = modal_rs
         modal_rs = np.asarray(modal_rs, dtype=np.float64)
-        # Each entry of a linear target is a signed sum of one or two RS coordinates: written
-        # entry by entry straight into the layout of ``_fit_weighted`` (no 4-D transpose).
-        weighted = np.empty((len(modal_rs), 3, 3, modal_rs.shape[2]))
-        for i in range(3):
-            for j in range(3):
-                row = LINEAR_TARGET[3 * i + j]
-                entry = weighted[:, j, i, :]
-                entry[:] = 0.0
-                for k in np.flatnonzero(row):
-                    entry += row[k] * modal_rs[:, k, :]
-        weighted *= self.recon.volumes[:, None, None, None]
-        A = self._fit_weighted(weighted).T
+        # Mode by mode (one target in memory), entry-major: LINEAR_TARGET (9, 9) @ RS (9, E).
+        targets = (LINEAR_TARGET @ modal_rs[:, :, i].T for i in range(modal_rs.shape[2]))
+        A = self.exact_q(targets, entry_major=True).T
         self._linear_map = (source, A)
         return A
 
