@@ -490,7 +490,7 @@ class PoissonReconstruction:
         """
         count = len(b)
         rhs = np.empty((self.num_nodes, 3 * count))
-        for f in range(count):        # target by target: a (3E, 3) copy each stays in cache
+        for f in range(count):        # target by target: the temporaries stay one target big
             rhs[:, 3 * f:3 * f + 3] = self.right_hand_side(b[f], entry_major)
         u = np.zeros((self.num_nodes, 3 * count))
         u[self.solved_nodes] = self.factor.solve(np.ascontiguousarray(rhs[self.solved_nodes]))

@@ -10,7 +10,7 @@ Results come back in input order, so the outcome does not depend on scheduling.
 ``matmul`` and ``inner`` do the same for tall dense products (basis x coefficients, Gram
 matrices of bases): BLAS runs on one thread while the stage's own threads use the cores, so
 they split the rows into fixed blocks of ROW_BLOCK and run one product per block. Blocks are
-fixed, not one per thread, so the result is the same on any number of cores.
+fixed, not one per thread, so the result is the same whatever the number of threads.
 """
 
 import os
