@@ -122,10 +122,10 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
         Y = modal_rs_poses(modal_rs, Z[start:start + count],
                            out=poses[:count]).reshape(count, n_tets, 9)
         parts = threads.even_parts(count)
-        # Targets pose by pose: arrays of one pose's size stay in cache (8 poses at once: 40 %
-        # slower), then one batched solve per thread.
+        # Targets pose by pose, as they are solved (a generator: one target per thread in
+        # memory; 8 poses' targets at once ran 40 % slower), then one batched solve per thread.
         solved = threads.ordered_map(lambda part: recon.solve_batch(
-            [rs.rs_target_entries(y) for y in Y[part]], entry_major=True), parts)
+            (rs.rs_target_entries(y) for y in Y[part]), entry_major=True), parts)
         out[:, start:start + count] = np.concatenate(solved).reshape(count, -1).T
     return out
 
@@ -189,6 +189,7 @@ def second_order_basis(X, T, masses, modal_rs, recon, modes_W, max_size=120, dro
 
 REFERENCE_ANGLE = 0.5 * np.pi   # rotation [rad] at which basis candidates are ranked
 CANDIDATE_BATCH = 8             # basis candidates per thread solved at once (24 right-hand sides)
+BATCH_MEMORY = 256 * 2 ** 20    # bytes of candidate targets (72 per tet) held at once, at most
 
 
 def _series_candidates(modal_rs, recon, order, keep, progress):
@@ -198,10 +199,10 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     kept (a cheap screen: Psi is a least-squares fit, so a small target cannot give a large
     displacement); keep None keeps them all. Each target is built once: a term is solved when
     it enters the running top ``keep`` (and still holds its column at the end of its batch of
-    CANDIDATE_BATCH terms per thread) and its column dropped when a larger one displaces it
-    (screening first would build every kept target twice, which costs more than the few
-    solves of terms displaced later); memory stays ``keep`` columns of 3N plus a batch of
-    targets.
+    CANDIDATE_BATCH terms per thread, fewer where they would pass BATCH_MEMORY) and its column
+    dropped when a larger one displaces it (screening first would build every kept target
+    twice, which costs more than the few solves of terms displaced later); memory stays
+    ``keep`` columns of 3N plus a batch of targets.
     """
     num_modes = modal_rs.shape[2]
     amplitude = REFERENCE_ANGLE / np.maximum(rs.max_mode_rotations(modal_rs), 1e-300)
@@ -230,7 +231,9 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     # Terms go in batches of CANDIDATE_BATCH per thread: their targets are built side by side,
     # the running top ``keep`` is updated in term order (as one term at a time would), and the
     # batch's terms that still hold a column are solved in one batched solve per thread.
-    batch = CANDIDATE_BATCH * threads.worker_count()
+    workers = threads.worker_count()
+    per_thread = max(1, min(CANDIDATE_BATCH, BATCH_MEMORY // (72 * len(recon.volumes) * workers)))
+    batch = per_thread * workers
     for first in range(0, len(terms), batch):
         if progress is not None:
             progress(0.8 * first / len(terms), f"basis candidate {first + 1}/{len(terms)}")
@@ -957,8 +960,9 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     (``second_order_basis`` with snapshot enrichment, ``max_size`` columns) [0.2, 0.5]; the
     cubature on ``num_poses`` other poses (``train_reduced_rs_cubature``) [0.5, 1].
     max_size None: ``default_basis_size`` (O(m^2), memory and mesh bounded); max_tets None:
-    ``default_cubature_size(max_size)``. The figures below predate the O(m^2) rule. Measured on a pinned 4:1:1 bar with 20 modes and
-    held-out poses up to 90 deg (strain <= 100 %): rB = 120 leaves up to about 1 % of the
+    ``default_cubature_size(max_size)``. The figures below predate the O(m^2) rule. Measured
+    on a pinned 4:1:1 bar with 20 modes and held-out poses up to 90 deg (strain <= 100 %):
+    rB = 120 leaves up to about 1 % of the
     bounding-box diagonal, rB = 160 about 0.75 %; 150 cubature tets add little to that (60
     tets: about 2 %). With 10 modes rB = 120 is plenty (0.3 % before cubature), and a larger
     basis only needs more cubature tets. Evaluating a few vertices costs the same whatever

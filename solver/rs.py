@@ -480,18 +480,16 @@ class PoissonReconstruction:
         return self.solve_batch([b], mean_displacement)[0]
 
     def solve_batch(self, b, mean_displacement=None, entry_major=False):
-        """Displacements u (k, N, 3) [m] fitting k targets b (k, E, 3, 3) (an array or a
-        sequence of (E, 3, 3) arrays), as ``solve`` each; with ``entry_major`` the targets
-        are (3, 3, E) (``rs_target_entries``).
+        """Displacements u (k, N, 3) [m] fitting k targets b (k, E, 3, 3), as ``solve`` each;
+        b may be any iterable of (E, 3, 3) targets (a generator keeps one in memory at a
+        time); with ``entry_major`` the targets are (3, 3, E) (``rs_target_entries``).
 
-        The right-hand sides are formed target by target (small arrays stay in cache), then
-        solved in one SuperLU call with 3k right-hand sides: 8 targets cost about a fifth
-        less than 8 calls of ``solve`` (98k-tet bar).
+        The right-hand sides are formed target by target, then solved in one SuperLU call
+        with 3k right-hand sides: 8 targets cost about a fifth less than 8 calls of
+        ``solve`` (98k-tet bar).
         """
-        count = len(b)
-        rhs = np.empty((self.num_nodes, 3 * count))
-        for f in range(count):        # target by target: the temporaries stay one target big
-            rhs[:, 3 * f:3 * f + 3] = self.right_hand_side(b[f], entry_major)
+        rhs = np.hstack([self.right_hand_side(target, entry_major) for target in b])  # (N, 3k)
+        count = rhs.shape[1] // 3
         u = np.zeros((self.num_nodes, 3 * count))
         u[self.solved_nodes] = self.factor.solve(np.ascontiguousarray(rhs[self.solved_nodes]))
         u = u.reshape(self.num_nodes, count, 3).transpose(1, 0, 2)            # (k, N, 3) view

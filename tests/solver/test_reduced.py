@@ -112,6 +112,17 @@ def test_series_targets_are_the_taylor_coefficients_of_the_rs_map(bar):
     assert 28.0 < ratio < 36.0                                   # 2^5 = 32
 
 
+def test_candidate_batches_do_not_change_the_candidates(bar, monkeypatch):
+    """Basis candidates solved 8 per thread, or one at a time (the memory bound met), are the
+    same columns; the screen keeps the same terms either way."""
+    args = bar["modal_rs"], bar["recon"], 3, 30, None
+    batched = reduced._series_candidates(*args)
+    monkeypatch.setattr(reduced, "BATCH_MEMORY", 1)
+    single = reduced._series_candidates(*args)
+    assert batched.shape == single.shape == (3 * len(bar["X"]), 30)
+    np.testing.assert_allclose(batched, single, rtol=0, atol=1e-12 * np.abs(single).max())
+
+
 def test_basis_cap_keeps_modes_and_drops_dependent_vectors(bar):
     X, T, recon, modal_rs = bar["X"], bar["T"], bar["recon"], bar["modal_rs"]
     B = reduced.second_order_basis(X, T, bar["masses"], modal_rs, recon, bar["W"], max_size=25,

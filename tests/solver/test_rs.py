@@ -275,6 +275,8 @@ def test_batched_solve_equals_one_solve_per_target():
         np.testing.assert_allclose(batch, single, rtol=0, atol=1e-12 * np.abs(single).max())
         as_list = recon.solve_batch(list(targets), mean_displacement=mean)
         np.testing.assert_array_equal(as_list, batch)
+        generated = recon.solve_batch((b for b in targets), mean_displacement=mean)
+        np.testing.assert_array_equal(generated, batch)
         if mean is not None:
             np.testing.assert_allclose([recon.weighted_mean(u) for u in batch],
                                        np.tile(mean, (5, 1)), atol=1e-12)
