@@ -426,8 +426,8 @@ class PoissonReconstruction:
     ``weights`` (N,) default to the lumped volume per node (sum of adjacent V_e / 4) [m^3].
 
     Attributes: ``factor`` (scipy SuperLU of L_s on ``solved_nodes``), ``num_nodes``,
-    ``pinned_nodes``, ``weights``, ``gradient`` (D),
-    ``volumes`` (E,), ``laplacian`` (N, N) csr.
+    ``pinned_nodes``, ``weights``, ``volumes`` (E,), ``laplacian`` (N, N) csr. The scalar
+    gradient D (3E, N) is kept only as ``right_hand_side`` uses it (direction-major, times V).
     """
 
     def __init__(self, X, T, pinned_nodes=None, weights=None):
@@ -435,14 +435,13 @@ class PoissonReconstruction:
         T = np.asarray(T, dtype=np.int64)
         self.num_nodes = len(X)
         self.volumes = np.abs(fem.tet_volumes(X, T))
-        self.gradient = fem.scalar_gradient_operator(X, T)
-        self.laplacian = (self.gradient.T @ sp.diags(np.repeat(self.volumes, 3))
-                          @ self.gradient).tocsr()
+        gradient = fem.scalar_gradient_operator(X, T)
+        self.laplacian = (gradient.T @ sp.diags(np.repeat(self.volumes, 3)) @ gradient).tocsr()
         # D^T diag(V) with D's rows reordered direction-major, (j, e): for an entry-major
         # target b (3, 3, E), column i of the right-hand side is this times b[i] flattened.
         n_tets = len(T)
         by_direction = np.arange(3 * n_tets).reshape(n_tets, 3).T.reshape(-1)
-        self._weighted_divergence = (self.gradient[by_direction].T
+        self._weighted_divergence = (gradient[by_direction].T
                                      @ sp.diags(np.tile(self.volumes, 3))).tocsr()
         self.weights = (fem.lumped_masses(X, T, 1.0) if weights is None
                         else np.asarray(weights, dtype=np.float64))
