@@ -1,9 +1,10 @@
-"""Application handlers: keep each body's cache next to the .blend it belongs to, and drop the
-panel's cached fingerprints when what they describe may have changed."""
+"""Application handlers: keep each body's cache next to the .blend it belongs to, drop the
+panel's cached fingerprints when what they describe may have changed, follow Live's handles,
+and the reactions to settings that set off work (the mode preview, Live, the tet overlay)."""
 import bpy
 from bpy.app.handlers import persistent
 
-from . import bodies, live
+from . import bodies, live, preview, properties, tet_overlay
 
 
 @persistent
@@ -38,10 +39,21 @@ def _live_frame(scene, *_args):
     live.on_frame_change(scene)
 
 
+def _live_toggled(settings, context):
+    # On: solve once now (via the timer); off: drop the live preview so the mesh is as before.
+    if settings.live:
+        live.request(settings.id_data.name)
+    else:
+        live.stop(settings.id_data)
+
+
 _ALL_FINGERPRINTS_GONE = ("load_post", "undo_post", "redo_post")
 
 
 def register():
+    properties.set_reaction("preview", lambda settings, context: preview.refresh(settings.id_data))
+    properties.set_reaction("live", _live_toggled)
+    properties.set_reaction("show_tets", lambda settings, context: tet_overlay.tag_redraw(context))
     bpy.app.handlers.save_post.append(_move_cache_after_save)
     bpy.app.handlers.depsgraph_update_post.append(_forget_fingerprints)
     bpy.app.handlers.depsgraph_update_post.append(_live_resolve)

@@ -8,8 +8,8 @@ writes the bake: only Solve and Bake does, so no edit made live can replace work
 Flow (main thread unless said): ``on_depsgraph_update`` notes which bodies' handles changed and
 when; a ``bpy.app.timers`` callback (``_tick``) waits ``DEBOUNCE`` seconds of quiet, gathers the
 problem (bpy), runs ``_solve`` on a worker thread (pure numpy) and, when it has finished, shows
-the result. In background mode timers do not run: ``flush`` does the same synchronously, and
-``resolve_now`` re-solves one body at once (what tests and scripts call).
+the result. In background mode timers do not run: ``flush`` does the same synchronously (what tests and
+scripts call).
 
 Coarser than Solve and Bake, to keep up with the mouse: a warm re-solve runs at most
 ``LIVE_GN_STEPS`` Gauss-Newton steps, no penalty continuation, and no material optimisation (the
@@ -113,14 +113,6 @@ def stop(obj):
     for table in (SOLUTIONS, ERRORS, _PENDING):
         table.pop(obj.name, None)
     preview.refresh(obj)
-
-
-def resolve_now(obj, blender_scene):
-    """Gather, solve (warm if possible) and show, synchronously. Returns the status line;
-    raises InputError if the edit cannot be solved."""
-    job = spacetime_inputs.gather(obj, blender_scene)
-    _store(obj, blender_scene, job, *_solve(job))
-    return status
 
 
 def _store(obj, blender_scene, job, Z, inputs, status):

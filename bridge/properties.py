@@ -3,23 +3,28 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from . import live, preview, tet_overlay
+# A setting's change can set off work above the data schema (the mode preview, Live, the tet
+# overlay). Those modules hand their reactions in at register time (bridge/handlers.py), so the
+# schema imports nothing of the bridge.
+_REACTIONS = {}   # reaction name -> function(settings, context)
 
 
-def _preview_changed(self, context):
-    preview.refresh(self.id_data)
+def set_reaction(name, function):
+    """Call ``function(settings, context)`` when a setting with the reaction ``name`` changes."""
+    _REACTIONS[name] = function
 
 
-def _live_changed(self, context):
-    # On: solve once now (via the timer); off: drop the live preview so the mesh is as before.
-    if self.live:
-        live.request(self.id_data.name)
-    else:
-        live.stop(self.id_data)
+def _reaction(name):
+    def update(self, context):
+        function = _REACTIONS.get(name)
+        if function is not None:
+            function(self, context)
+    return update
 
 
-def _show_tets_changed(self, context):
-    tet_overlay.tag_redraw(context)
+_preview_changed = _reaction("preview")
+_live_changed = _reaction("live")
+_show_tets_changed = _reaction("show_tets")
 
 
 class RSElasticMode(bpy.types.PropertyGroup):

@@ -1,10 +1,7 @@
 """Simulation: material model, damping, time integration and the Simulate operator."""
-import math
-
 import bpy
 
-from ..bridge import bodies, colliders
-from ..solver.dynamics import damping_ratio
+from ..bridge import bodies, colliders, estimates
 from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range, frame_count
 
 
@@ -58,8 +55,7 @@ def draw_collisions(layout, context, settings):
 
 def damping_label(settings, frequency_hz):
     """The Rayleigh damping as a damping ratio at the first mode (frequency in Hz)."""
-    zeta = damping_ratio(settings.damping_mass, settings.damping_stiffness,
-                         2.0 * math.pi * frequency_hz)
+    zeta = estimates.first_mode_damping_ratio(settings, frequency_hz)
     return f"Damping ratio at mode 1 ({frequency_hz:.3g} Hz): {100.0 * zeta:.3g} %"
 
 

@@ -17,7 +17,7 @@ def test_a_dense_sphere_prepares_through_its_proxy(ext):
     make_active(obj)
     settings = obj.rs_elastic
     settings.edge_length = 0.1
-    triangles, meshed = ext.panels.tetrahedralize.mesh_estimate(obj, settings)
+    triangles, meshed = ext.bridge.estimates.mesh_estimate(obj, settings)
     assert triangles > 60000 and meshed == ext.solver.proxy.MIN_BUDGET
     assert bpy.ops.rs_elastic.tetrahedralize() == {'FINISHED'}
     inputs = ext.bridge.bodies.read_inputs(obj, bpy.context.evaluated_depsgraph_get(),
