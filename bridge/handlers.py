@@ -3,7 +3,7 @@ panel's cached fingerprints when what they describe may have changed."""
 import bpy
 from bpy.app.handlers import persistent
 
-from . import bodies, live
+from . import live, stage_cache, staleness
 
 
 @persistent
@@ -12,19 +12,19 @@ def _move_cache_after_save(*_args):
     # there so reopening it reuses them.
     for obj in bpy.data.objects:
         if obj.type == 'MESH' and obj.rs_elastic.tets_key:
-            bodies.persist(obj)
+            stage_cache.persist(obj)
 
 
 @persistent
 def _forget_fingerprints(scene, depsgraph):
     # The panel's staleness check caches each body's geometry fingerprint until it changes.
-    bodies.forget_fingerprints(depsgraph.updates)
+    staleness.forget_fingerprints(depsgraph.updates)
 
 
 @persistent
 def _forget_all_fingerprints(*_args):
     # After a load or an undo step, objects may sit at addresses that other objects had.
-    bodies.forget_fingerprints(None)
+    staleness.forget_fingerprints(None)
 
 
 @persistent
