@@ -4,7 +4,7 @@ and the reactions to settings that set off work (the mode preview, Live, the tet
 import bpy
 from bpy.app.handlers import persistent
 
-from . import bodies, live, preview, properties, tet_overlay
+from . import live, preview, properties, stage_cache, staleness, tet_overlay
 
 
 @persistent
@@ -13,19 +13,19 @@ def _move_cache_after_save(*_args):
     # there so reopening it reuses them.
     for obj in bpy.data.objects:
         if obj.type == 'MESH' and obj.rs_elastic.tets_key:
-            bodies.persist(obj)
+            stage_cache.persist(obj)
 
 
 @persistent
 def _forget_fingerprints(scene, depsgraph):
     # The panel's staleness check caches each body's geometry fingerprint until it changes.
-    bodies.forget_fingerprints(depsgraph.updates)
+    staleness.forget_fingerprints(depsgraph.updates)
 
 
 @persistent
 def _forget_all_fingerprints(*_args):
     # After a load or an undo step, objects may sit at addresses that other objects had.
-    bodies.forget_fingerprints(None)
+    staleness.forget_fingerprints(None)
 
 
 @persistent

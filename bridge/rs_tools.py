@@ -9,7 +9,7 @@ import functools
 import numpy as np
 
 from ..solver import rs, transfer
-from . import bodies
+from . import bodies, staleness
 
 _TOOLS = collections.OrderedDict()   # prepared key -> RSTools
 _LIMIT = 8
@@ -22,6 +22,15 @@ class RSTools:
         self.tets = body.tet_body.tets
         self.embedding = body.tet_body.embedding            # positions: base = embedding @ nodes
         self.displacement_embedding = body.displacement_embedding   # displacements; pins hold
+
+    @property
+    def volumes(self):
+        """(E,) unsigned tet volumes [m^3], kept on the tet body (read-only)."""
+        return self.body.tet_body.volumes
+
+    def lumped_masses(self, density):
+        """(N,) lumped node masses [kg] for density [kg/m^3], kept on the tet body (read-only)."""
+        return self.body.tet_body.lumped_masses(density)
 
     @functools.cached_property
     def pinned_nodes(self):
@@ -71,8 +80,8 @@ class RSTools:
 
 def for_object(obj):
     """RSTools for the object's prepared body, or None if it is not prepared for this mesh (or
-    is stale: see bodies.stale_reason)."""
-    if bodies.stale_reason(obj, cached=True):
+    is stale: see staleness.stale_reason)."""
+    if staleness.stale_reason(obj, cached=True):
         return None
     key = obj.rs_elastic.prepared_key + obj.rs_elastic.reduced_key
     if key in _TOOLS:

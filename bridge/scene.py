@@ -157,6 +157,23 @@ def vertex_group_mask(obj, group_name):
     return mask
 
 
+def pin_weights(obj, group_name):
+    """(n,) float32 weights of the named vertex group over the base vertices (0 outside it).
+
+    Blender has no bulk accessor for group weights, so this walks the memberships once.
+    """
+    group = obj.vertex_groups.get(group_name)
+    if group is None:
+        raise InputError(f"Pin group '{group_name}' does not exist on '{obj.name}'")
+    index = group.index
+    weights = np.zeros(len(obj.data.vertices), dtype=np.float32)
+    for v in obj.data.vertices:
+        for g in v.groups:
+            if g.group == index:
+                weights[v.index] = g.weight
+    return weights
+
+
 def group_weights(obj, group_name):
     """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it)."""
     group = obj.vertex_groups.get(group_name)

@@ -3,8 +3,9 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import contact, dynamics, fem, inversion, materials
-from . import armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
+from ..solver import contact, dynamics, inversion, materials
+from . import (armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs,
+               stage_cache)
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -62,7 +63,7 @@ def record_energy(obj):
     tools = rs_tools.for_object(obj)
     if energy is not None and tools is not None:
         parent = bodies.energy_parent(tools.body)
-        bodies.record_energy(obj, parent, energy.key(parent))
+        stage_cache.record_energy(obj, parent, energy.key(parent))
 
 
 def potential_for(tools, settings):
@@ -80,10 +81,9 @@ def potential_for(tools, settings):
     cache = tools.__dict__.setdefault("_potentials", {})
     key = (settings.youngs_modulus, settings.poisson_ratio)
     if key not in cache:
-        mu, lam = fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)
-        volumes = np.abs(fem.tet_volumes(tools.nodes, tools.tets))
+        mu, lam = bodies.material_lame(settings)
         cache[key], _ = materials.prepare_potential(materials.Linear(mu, lam), tools.modal_rs,
-                                                    volumes)
+                                                    tools.volumes)
     return cache[key]
 
 
@@ -133,10 +133,10 @@ def gather(obj, blender_scene):
         # A still object: simulate in its own space, with gravity turned into it.
         rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())
         gravity = rotation.T @ gravity
-    masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+    masses = tools.lumped_masses(settings.density)
     # The volume barrier over all tets keeps the body from inverting; tets let every step check.
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
-                                       np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
+                                       tools.volumes)
     # ... and one on the reconstruction keeps the positions the user sees from inverting.
     potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,
                                                       tools.tets)
@@ -168,9 +168,9 @@ def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
     settings = obj.rs_elastic
     armature.require_follow_group(obj, len(tools.pinned_nodes) > 0)
     warnings += armature.warnings_for(obj)
-    masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+    masses = tools.lumped_masses(settings.density)
     potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
-                                       np.abs(fem.tet_volumes(tools.nodes, tools.tets)))
+                                       tools.volumes)
     load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
     potential = armature.held_by_follow_weights(obj, tools, masses, potential)
     potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,

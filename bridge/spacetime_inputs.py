@@ -3,8 +3,8 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import accuracy, fem, rs, spacetime
-from . import armature, bake, bodies, constraints, rs_tools, scene
+from ..solver import accuracy, rs, spacetime
+from . import armature, bake, constraints, rs_tools, scene, staleness
 from .scene import InputError
 
 
@@ -64,7 +64,7 @@ def status_sentence(result):
 
 
 def prepared_tools(obj):
-    bodies.require_current(obj)      # says what changed since Prepare Body
+    staleness.require_current(obj)      # says what changed since Prepare Body
     tools = rs_tools.for_object(obj)
     if tools is None or tools.deformer is None:
         raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")
@@ -75,7 +75,7 @@ def poses_to_modal(tools, points_per_pose):
     """ẑ (k, m) of render-vertex poses (k, n, 3): carried to the nodes, turned into RS
     coordinates (each pose's rotation branch chained to the previous one) and fitted."""
     X, T = tools.nodes, tools.tets
-    volumes = np.abs(fem.tet_volumes(X, T))
+    volumes = tools.volumes
     reference, fitted = None, []
     for points in points_per_pose:
         nodes = tools.pose_transfer.nodes_from_points(points)
@@ -194,7 +194,7 @@ def gather(obj, blender_scene):
         # also meets its handles by the method of multipliers (spacetime.solve exact_handles):
         # on 9 creature meshes 7 misses fell to 1e-7 or less, one to 1e-5 and one stalled at 3e-3.
         gamma *= RIG_TIGHTNESS
-        masses = fem.lumped_masses(tools.nodes, tools.tets, settings.density)
+        masses = tools.lumped_masses(settings.density)
         load = armature.rig_load(obj, blender_scene, tools, frames, h,
                                  scene.scene_gravity(blender_scene), masses)
         jacobian = tools.deformer.q_jacobian(np.zeros(tools.deformer.num_coords))

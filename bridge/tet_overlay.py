@@ -7,7 +7,7 @@ mesh are built once per cache key. Nothing is drawn in background mode (there is
 import bpy
 import numpy as np
 
-from . import bodies
+from . import stage_cache
 
 _handler = None
 _batches = {}   # (tets_key, prepared_key) -> (shader, edge batch, pinned-node batch or None)
@@ -28,7 +28,7 @@ def _batch(obj):
     if key not in _batches:
         import gpu
         from gpu_extras.batch import batch_for_shader
-        tet_body = bodies.load_tet_body(obj)
+        tet_body = stage_cache.load_tet_body(obj)
         if tet_body is None:
             _batches[key] = None
         else:
@@ -36,7 +36,7 @@ def _batch(obj):
             nodes = tet_body.nodes.astype(np.float32)
             edges = batch_for_shader(shader, 'LINES', {"pos": nodes},
                                      indices=_tet_edges(tet_body.tets).astype(np.int32))
-            pinned = bodies.load_pinned_nodes(obj) if settings.prepared_key else None
+            pinned = stage_cache.load_pinned_nodes(obj) if settings.prepared_key else None
             points = None
             if pinned is not None and len(pinned) and pinned.max() < len(nodes):
                 points = batch_for_shader(shader, 'POINTS', {"pos": nodes[pinned]})

@@ -2,7 +2,7 @@
 import bpy
 import numpy as np
 
-from ..bridge import bake, bodies, rs_tools, scene
+from ..bridge import bake, rs_tools, scene, staleness
 from ..bridge.scene import InputError
 from ..solver import rs
 
@@ -97,7 +97,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
 
     def _run(self, context):
         obj = scene.require_mesh_object(context.active_object)
-        bodies.require_current(obj)
+        staleness.require_current(obj)
         tools = rs_tools.for_object(obj)
         if tools is None:
             raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")

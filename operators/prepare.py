@@ -3,7 +3,7 @@ RS deformer, and the energy cubature of a StVK or Fung material (so its first si
 fast)."""
 import bpy
 
-from ..bridge import bodies, jobs, preview, tet_overlay
+from ..bridge import bodies, jobs, preview, stage_cache, staleness, tet_overlay
 
 
 class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
@@ -22,9 +22,9 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         obj = bpy.data.objects[self._inputs.object_name]
         settings = obj.rs_elastic
         settings.tets_key, settings.prepared_key, settings.reduced_key = body.keys
-        bodies.store_tet_mesh(obj, settings.tets_key, body.tet_body)
-        bodies.record_prepared(obj, self._inputs.fingerprint)
-        bodies.record_energy(obj, bodies.energy_parent(body), body.energy_key)
+        stage_cache.store_tet_mesh(obj, settings.tets_key, body.tet_body)
+        staleness.record_prepared(obj, self._inputs.fingerprint)
+        stage_cache.record_energy(obj, bodies.energy_parent(body), body.energy_key)
         settings.reduced_basis_count = body.deformer.basis_size
         settings.cubature_count = len(body.deformer.cubature_tets)
         settings.tet_node_count = len(body.tet_body.nodes)
@@ -35,8 +35,8 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
         settings.mnf = float(body.linear_modes.mnf)
         if settings.preview_enabled:
             preview.show(obj)
-        bodies.persist(obj)
-        bodies.prune(obj)
+        stage_cache.persist(obj)
+        stage_cache.prune(obj)
         tet_overlay.tag_redraw(context)
         f = body.linear_modes.frequencies_hz
         energy = "" if body.energy is None else (

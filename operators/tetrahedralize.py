@@ -1,7 +1,7 @@
 """Tetrahedralise the active mesh with fTetWild and embed its vertices in the tets."""
 import bpy
 
-from ..bridge import bodies, jobs, tet_overlay
+from ..bridge import bodies, jobs, stage_cache, tet_overlay
 
 
 class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
@@ -25,13 +25,13 @@ class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
             settings.reduced_key = ""
             settings.mode_results.clear()
             settings.mnf = 0.0
-            bodies.forget_prepared(obj)
+            stage_cache.forget_prepared(obj)
         settings.tets_key = self._key
-        bodies.store_tet_mesh(obj, self._key, tet_body)
+        stage_cache.store_tet_mesh(obj, self._key, tet_body)
         settings.tet_node_count = len(tet_body.nodes)
         settings.tet_count = len(tet_body.tets)
-        bodies.persist(obj)
-        bodies.prune(obj)
+        stage_cache.persist(obj)
+        stage_cache.prune(obj)
         tet_overlay.tag_redraw(context)
         self.report({'INFO'}, f"'{obj.name}': {settings.tet_node_count} nodes, "
                               f"{settings.tet_count} tets")

@@ -1,7 +1,7 @@
 """The parent panel: which body the settings below belong to."""
 import bpy
 
-from ..bridge import bodies, mesh_cache
+from ..bridge import mesh_cache, staleness
 
 
 class RSElasticPanel:
@@ -61,7 +61,7 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         settings = obj.rs_elastic
         row = self.layout.row()
         row.label(text=obj.name, icon='MESH_DATA')
-        stale = bodies.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
+        stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
         if stale:
             row.label(text="Stale", icon='ERROR')
             self.layout.label(text=stale[0].upper() + stale[1:])

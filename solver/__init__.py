@@ -22,6 +22,8 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``inversion`` a volume barrier on the RS strain that keeps reduced bodies from inverting.
 - ``rig``      flesh on a rig: elastic motion as a deviation from linear blend skinning.
 - ``contact``  barrier, friction and damping contact of surface samples with mesh colliders.
+- ``body``     a prepared body as arrays: its tets and embedding (volumes, lumped masses kept),
+  and the stages' results; each stage object has ``to_arrays`` / ``from_arrays``.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
 

@@ -280,7 +280,7 @@ class ReducedPotential(PotentialAccessors):
         return arrays
 
     @classmethod
-    def from_arrays(cls, material, arrays):
+    def from_arrays(cls, arrays, material):
         """The potential of ``material`` over the quadrature saved by ``to_arrays``: evaluates
         bit for bit like the saved one (the same arrays, the same arithmetic)."""
         return cls(material, arrays["strain_modes"], arrays["weights"], tets=arrays.get("tets"))

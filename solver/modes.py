@@ -68,6 +68,17 @@ class LinearModes:
         """Minimal natural frequency sqrt(lambda_1) in rad/s ([P15]'s nonlinearity indicator)."""
         return float(np.sqrt(max(self.eigenvalues[0], 0.0)))
 
+    def to_arrays(self):
+        """dict of numpy arrays for ``cache.save``."""
+        return dict(eigenvalues=self.eigenvalues, vectors=self.vectors,
+                    pinned_nodes=self.pinned_nodes)
+
+    @classmethod
+    def from_arrays(cls, arrays):
+        """Inverse of ``to_arrays``."""
+        return cls(eigenvalues=arrays["eigenvalues"], vectors=arrays["vectors"],
+                   pinned_nodes=arrays["pinned_nodes"].astype(np.int64))
+
 
 def rigid_motions(X):
     """(3N, 6) infinitesimal rigid motions of the nodes X (N, 3), node-major.

@@ -650,7 +650,7 @@ class ReducedRS:
 
     # -- cache --------------------------------------------------------------------------------
 
-    def save_arrays(self, include_basis=True):
+    def to_arrays(self, include_basis=True):
         """dict of numpy arrays for ``cache.save``; B is optional (it is 3N x rB)."""
         arrays = dict(cubature_tets=self.cubature_tets, cubature_weights=self.cubature_weights,
                       projections=self.projections, modal_rs_cubature=self.modal_rs_cubature,
@@ -661,7 +661,7 @@ class ReducedRS:
 
     @classmethod
     def from_arrays(cls, arrays):
-        """Inverse of ``save_arrays`` (an evaluation-only deformer, see the class docstring)."""
+        """Inverse of ``to_arrays`` (an evaluation-only deformer, see the class docstring)."""
         return cls(arrays.get("basis"), arrays["cubature_tets"], arrays["cubature_weights"],
                    arrays["projections"], arrays["modal_rs_cubature"], arrays["linear_map"])
 
@@ -711,7 +711,7 @@ class LinearDeformer:
         """``RowEvaluator`` for fixed rows (3k, m)."""
         return RowEvaluator(self, rows)
 
-    def save_arrays(self, include_basis=True):
+    def to_arrays(self, include_basis=True):
         """dict of numpy arrays for ``cache.save``."""
         arrays = dict(num_coords=np.array(self.num_coords))
         if include_basis and self.basis is not None:
@@ -720,7 +720,7 @@ class LinearDeformer:
 
     @classmethod
     def from_arrays(cls, arrays):
-        """Inverse of ``save_arrays``."""
+        """Inverse of ``to_arrays``."""
         return cls(int(arrays["num_coords"]), arrays.get("basis"))
 
 

@@ -32,8 +32,8 @@ def ext():
 def empty_scene(tmp_path):
     """Every test starts from an empty, unsaved file."""
     bpy.ops.wm.read_homefile(use_empty=True)
-    EXTENSION.bridge.bodies.stats.clear()
-    EXTENSION.bridge.bodies._MEMORY.clear()
+    EXTENSION.bridge.stage_cache.stats.clear()
+    EXTENSION.bridge.stage_cache._MEMORY.clear()
     # Unsaved files cache in the temp folder: give each test its own.
     (tmp_path / "tmp").mkdir()
     tempfile.tempdir = str(tmp_path / "tmp")

@@ -24,7 +24,7 @@ bpy.ops.wm.open_mainfile(filepath={blend!r})
 obj = bpy.data.objects["Bar"]
 bpy.context.view_layer.objects.active = obj
 result = bpy.ops.rs_elastic.prepare()
-print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.bodies.stats),
+print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.stage_cache.stats),
                                   frequencies=list(obj.rs_elastic.frequencies))))
 """
 
@@ -43,7 +43,7 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     # Prepare again now that the file has a name: the cache moves next to it, nothing recomputed.
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    assert ext.bridge.bodies.stats["modes"] == 1
+    assert ext.bridge.stage_cache.stats["modes"] == 1
     folder = tmp_path / "blendcache_shot"
     files = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
     settings = obj.rs_elastic
@@ -66,10 +66,10 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
 
 def test_stale_cache_is_rebuilt_per_stage(ext):
     obj = prepare_bar(ext)
-    stats = ext.bridge.bodies.stats
+    stats = ext.bridge.stage_cache.stats
     assert (stats["tetrahedralize"], stats["modes"]) == (1, 1)
     obj.rs_elastic.density *= 2.0                       # material: only the modes are stale
-    ext.bridge.bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert (stats["tetrahedralize"], stats["modes"]) == (1, 2)
     obj.data.vertices[0].co.x -= 0.2                    # mesh: everything is stale
@@ -80,12 +80,12 @@ def test_stale_cache_is_rebuilt_per_stage(ext):
 def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
     obj = prepare_bar(ext)
     before = np.array(obj.rs_elastic.frequencies)
-    path = pathlib.Path(ext.bridge.bodies.cache_file(ext.bridge.bodies.cache_dirs()[0], "Bar", "modes",
+    path = pathlib.Path(ext.bridge.stage_cache.cache_file(ext.bridge.stage_cache.cache_dirs()[0], "Bar", "modes",
                                                      obj.rs_elastic.prepared_key))
     path.write_bytes(b"this is not a cache file")
-    ext.bridge.bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    assert ext.bridge.bodies.stats["modes"] == 2
+    assert ext.bridge.stage_cache.stats["modes"] == 2
     np.testing.assert_allclose(obj.rs_elastic.frequencies, before, rtol=1e-10)
     assert ext.solver.cache.load(str(path), obj.rs_elastic.prepared_key) is not None
 
@@ -93,9 +93,9 @@ def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
 def test_unsaved_file_uses_the_temp_folder(ext):
     assert bpy.data.filepath == ""
     import tempfile
-    assert ext.bridge.bodies.cache_dirs() == [os.path.join(tempfile.gettempdir(), "rs_elastic_cache")]
+    assert ext.bridge.stage_cache.cache_dirs() == [os.path.join(tempfile.gettempdir(), "rs_elastic_cache")]
     obj = prepare_bar(ext)
-    assert sorted(os.listdir(ext.bridge.bodies.cache_dirs()[0])) == sorted(
+    assert sorted(os.listdir(ext.bridge.stage_cache.cache_dirs()[0])) == sorted(
         [f"Bar.modes.{obj.rs_elastic.prepared_key[:16]}.npz",
          f"Bar.tets.{obj.rs_elastic.tets_key[:16]}.npz",
          f"Bar.reduced.{obj.rs_elastic.reduced_key[:16]}.npz"])
@@ -103,7 +103,7 @@ def test_unsaved_file_uses_the_temp_folder(ext):
 
 def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
     obj = prepare_bar(ext)
-    folder = ext.bridge.bodies.cache_dirs()[0]
+    folder = ext.bridge.stage_cache.cache_dirs()[0]
     old = set(os.listdir(folder))
     obj.rs_elastic.youngs_modulus *= 3
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
@@ -112,13 +112,13 @@ def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
 
 
 def stored_tets(ext, obj):
-    group = obj.rs_elastic.get(ext.bridge.bodies.TET_MESH)
+    group = obj.rs_elastic.get(ext.bridge.stage_cache.TET_MESH)
     return group["key"], np.array(group["nodes"]), np.array(group["tets"])
 
 
 def test_the_tet_mesh_stays_with_the_file_until_the_surface_or_mesher_settings_change(ext):
     obj = prepare_bar(ext)
-    stats, bodies = ext.bridge.bodies.stats, ext.bridge.bodies
+    stats, stage_cache = ext.bridge.stage_cache.stats, ext.bridge.stage_cache
     key, nodes, tets = stored_tets(ext, obj)
     assert key == obj.rs_elastic.tets_key and len(tets) == 4 * obj.rs_elastic.tet_count
     assert nodes.dtype == np.float64 and len(nodes) == 3 * obj.rs_elastic.tet_node_count
@@ -127,8 +127,8 @@ def test_the_tet_mesh_stays_with_the_file_until_the_surface_or_mesher_settings_c
     obj.rs_elastic.num_modes = 4
     obj.vertex_groups["Pin"].add(list(range(len(obj.data.vertices))[:3]), 1.0, 'REPLACE')
     obj.rs_elastic.cubature_tets = 50
-    shutil.rmtree(bodies.cache_dirs()[0])
-    bodies._MEMORY.clear()
+    shutil.rmtree(stage_cache.cache_dirs()[0])
+    stage_cache._MEMORY.clear()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["tetrahedralize"] == 1 and stats["modes"] == 2
     assert stored_tets(ext, obj)[0] == key
@@ -152,14 +152,14 @@ def test_the_tet_mesh_stays_with_the_file_until_the_surface_or_mesher_settings_c
 
 def test_the_overlay_reads_the_pinned_nodes_without_recomputing(ext):
     obj = prepare_bar(ext)
-    bodies = ext.bridge.bodies
+    bodies, stage_cache = ext.bridge.bodies, ext.bridge.stage_cache
     pinned = bodies.load_prepared(obj).linear_modes.pinned_nodes
     assert len(pinned) > 0
-    np.testing.assert_array_equal(bodies.load_pinned_nodes(obj), pinned)
-    bodies._MEMORY.clear()
-    np.testing.assert_array_equal(bodies.load_pinned_nodes(obj), pinned)      # from the file
-    assert bodies.stats["modes"] == 1
-    nodes = bodies.load_tet_body(obj).nodes
+    np.testing.assert_array_equal(stage_cache.load_pinned_nodes(obj), pinned)
+    stage_cache._MEMORY.clear()
+    np.testing.assert_array_equal(stage_cache.load_pinned_nodes(obj), pinned)      # from the file
+    assert stage_cache.stats["modes"] == 1
+    nodes = stage_cache.load_tet_body(obj).nodes
     assert np.abs(nodes[pinned, 0]).max() < 0.5        # on the pinned end face, not beyond
 
 
@@ -189,7 +189,7 @@ while hasattr(potential, "barrier"):                  # the material's, inside t
 poses = sim.run(inputs, ext.bridge.jobs.Job(None))
 np.savez({out!r}, tets=potential.tets, weights=potential.weights,
          strain_modes=potential.strain_modes, poses=poses)
-print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.bodies.stats))))
+print("RESULT " + json.dumps(dict(result=sorted(result), stats=dict(ext.bridge.stage_cache.stats))))
 """
 
 
@@ -222,7 +222,7 @@ def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, 
     obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 5
     obj.rs_elastic.material_model = 'STVK'
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    stats = ext.bridge.bodies.stats
+    stats = ext.bridge.stage_cache.stats
     assert stats["energy"] == 1                        # trained by Prepare ...
     blend = tmp_path / "stvk.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))   # (its file moves next to the .blend)
@@ -252,7 +252,7 @@ def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, 
 
 def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_ones(ext):
     obj = prepare_bar(ext)                             # Linear: no cubature, no file
-    stats, folder = ext.bridge.bodies.stats, ext.bridge.bodies.cache_dirs()[0]
+    stats, folder = ext.bridge.stage_cache.stats, ext.bridge.stage_cache.cache_dirs()[0]
     simulate_frames(ext, obj)
     assert stats["energy"] == 0 and energy_files(folder) == []
     assert ext.bridge.bodies.energy_ready(obj) is None
@@ -272,7 +272,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     simulate_frames(ext, obj)
     assert stats["energy"] == 3 and len(energy_files(folder)) == 3
     # A new session: all three are loaded, none trained.
-    ext.bridge.bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     ext.bridge.rs_tools._TOOLS.clear()
     assert ext.bridge.bodies.energy_ready(obj) is True     # from its file
     for kind, stiffening in (('STVK', 5.0), ('FUNG', 25.0), ('FUNG', 5.0)):
@@ -309,24 +309,24 @@ def test_a_damaged_energy_file_is_rebuilt_with_one_warning(ext, capfd, damage):
     obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.08, 5
     obj.rs_elastic.material_model = 'STVK'
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    bodies = ext.bridge.bodies
-    (name,) = energy_files(bodies.cache_dirs()[0])
-    path = pathlib.Path(bodies.cache_dirs()[0]) / name
-    key = json.loads(obj.rs_elastic[bodies.ENERGY_RECORD])["keys"][0]
+    stage_cache = ext.bridge.stage_cache
+    (name,) = energy_files(stage_cache.cache_dirs()[0])
+    path = pathlib.Path(stage_cache.cache_dirs()[0]) / name
+    key = json.loads(obj.rs_elastic[stage_cache.ENERGY_RECORD])["keys"][0]
     trained = ext.solver.cache.load(str(path), key)
     _, poses = fresh_poses(ext, obj)
     arrays = {name: a.copy() for name, a in trained.items()}
     problem = damage(path, arrays)
     if problem.startswith(" is inconsistent") or problem.startswith(":"):
         ext.solver.cache.save(str(path), key, arrays)
-    bodies._MEMORY.clear()
+    stage_cache._MEMORY.clear()
     capfd.readouterr()
     rebuilt = simulate_frames(ext, obj)
     warnings = [line for line in capfd.readouterr().out.splitlines()
                 if line.startswith("Warning: ")]
     assert len(warnings) == 1 and problem in warnings[0] and str(path) in warnings[0]
     assert warnings[0].endswith("; rebuilding it")
-    assert bodies.stats["energy"] == 2 and bodies.stats["energy_cache_hits"] == 0
+    assert stage_cache.stats["energy"] == 2 and stage_cache.stats["energy_cache_hits"] == 0
     for name in ("tets", "weights", "strain_modes"):   # trained again, to the same bits
         np.testing.assert_array_equal(getattr(rebuilt, name), trained[name])
         np.testing.assert_array_equal(ext.solver.cache.load(str(path), key)[name], trained[name])
@@ -348,5 +348,5 @@ def test_esc_cancels_the_energy_training_and_writes_nothing(ext):
     while not job.done:
         time.sleep(0.01)
     assert isinstance(job.error, ext.bridge.jobs.Cancelled)
-    assert energy_files(ext.bridge.bodies.cache_dirs()[0]) == []
+    assert energy_files(ext.bridge.stage_cache.cache_dirs()[0]) == []
     assert ext.bridge.simulation_inputs.energy_work(obj) is not None     # still to be trained

@@ -39,7 +39,7 @@ else:
         assert getattr(bpy.ops.rs_elastic, operator)() == {{'FINISHED'}}, operator
 body = ext.bridge.bodies.load_prepared(obj)
 np.savez({dump!r}, nodes=body.tet_body.nodes, tets=body.tet_body.tets, *bakes)
-print("STATS " + json.dumps(dict(ext.bridge.bodies.stats)))
+print("STATS " + json.dumps(dict(ext.bridge.stage_cache.stats)))
 blender_session.exit_child(0)
 """
 
@@ -86,8 +86,8 @@ def saved_scene(tmp_path):
 def forget_the_cache(ext, blend):
     """As on a machine that never saw this file: no cache folder, nothing in memory."""
     shutil.rmtree(blend.parent / f"blendcache_{blend.stem}", ignore_errors=True)
-    shutil.rmtree(ext.bridge.bodies.cache_dirs()[-1], ignore_errors=True)
-    ext.bridge.bodies._MEMORY.clear()
+    shutil.rmtree(ext.bridge.stage_cache.cache_dirs()[-1], ignore_errors=True)
+    ext.bridge.stage_cache._MEMORY.clear()
     ext.bridge.rs_tools._TOOLS.clear()
 
 
@@ -108,10 +108,10 @@ def bake_here(ext, blend, recorder):
 def test_the_same_file_bakes_the_same_twice_in_one_process_and_in_a_new_one(ext, tmp_path,
                                                                              recorder):
     blend, size = saved_scene(tmp_path)
-    ext.bridge.bodies.stats.clear()
+    ext.bridge.stage_cache.stats.clear()
     first = bake_here(ext, blend, recorder)
     second = bake_here(ext, blend, recorder)
-    stats = ext.bridge.bodies.stats
+    stats = ext.bridge.stage_cache.stats
     assert stats["tetrahedralize"] == 0 and stats["modes"] == 2      # really recomputed
     forget_the_cache(ext, blend)
     third = run_child(blend, tmp_path / "child.npz")

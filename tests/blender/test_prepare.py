@@ -51,7 +51,7 @@ def test_tetrahedralize_alone_reports_counts_and_evaluated_mesh(ext):
     obj.rs_elastic.edge_length = 0.1
     assert bpy.ops.rs_elastic.tetrahedralize() == {'FINISHED'}
     settings = obj.rs_elastic
-    tet_body = ext.bridge.bodies.load_tet_body(obj)
+    tet_body = ext.bridge.stage_cache.load_tet_body(obj)
     assert settings.tet_count == len(tet_body.tets) > 0
     assert settings.tet_node_count == len(tet_body.nodes)
     volume = ext.solver.fem.mesh_volume(tet_body.nodes, tet_body.tets)
@@ -100,7 +100,7 @@ def test_show_tets_overlay_draws_every_edge_and_leaves_the_mesh_alone(ext):
     before = fingerprint(obj)
     obj.rs_elastic.show_tets = True
     assert fingerprint(obj) == before
-    tets = ext.bridge.bodies.load_tet_body(obj).tets
+    tets = ext.bridge.stage_cache.load_tet_body(obj).tets
     edges = ext.bridge.tet_overlay._tet_edges(tets)
     faces = np.unique(np.sort(tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3),
                               axis=1), axis=0)

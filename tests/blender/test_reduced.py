@@ -37,7 +37,7 @@ def test_cancelling_a_preparation_keeps_the_previous_cache_usable(ext):
     obj.rs_elastic.youngs_modulus *= 5
     bodies, jobs = ext.bridge.bodies, ext.bridge.jobs
     inputs = bodies.read_inputs(obj, bpy.context.evaluated_depsgraph_get())
-    bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     job = jobs.Job(lambda j: bodies.prepare(inputs, j))
     job.start()
     deadline = time.monotonic() + 120
@@ -50,7 +50,7 @@ def test_cancelling_a_preparation_keeps_the_previous_cache_usable(ext):
     assert (obj.rs_elastic.tets_key, obj.rs_elastic.prepared_key, obj.rs_elastic.reduced_key) == keys
     assert obj.rs_elastic.frequencies == frequencies
     obj.rs_elastic.youngs_modulus /= 5        # back to what was prepared (else it is stale)
-    bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     body = bodies.load_prepared(obj)          # from the old files on disk
     assert body is not None and body.deformer is not None
     assert body.deformer.num_coords == 5

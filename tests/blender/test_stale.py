@@ -37,8 +37,8 @@ def bar(prepared_file, tmp_path, ext):
     shutil.copy(prepared_file / "shot.blend", tmp_path / "shot.blend")
     shutil.copytree(prepared_file / "blendcache_shot", tmp_path / "blendcache_shot")
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "shot.blend"))
-    ext.bridge.bodies._MEMORY.clear()
-    ext.bridge.bodies.stats.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
+    ext.bridge.stage_cache.stats.clear()
     obj = bpy.data.objects["Bar"]
     make_active(obj)
     return obj
@@ -101,13 +101,13 @@ STALE_ROWS = [
 
 @pytest.mark.parametrize("change, message", STALE_ROWS, ids=[r[0].__name__ for r in STALE_ROWS])
 def test_a_stale_body_is_refused_with_what_changed(ext, bar, change, message):
-    bodies = ext.bridge.bodies
-    assert bodies.stale_reason(bar, cached=True) is None      # fills the panel's cache
+    staleness = ext.bridge.staleness
+    assert staleness.stale_reason(bar, cached=True) is None      # fills the panel's cache
     counts = change(bar)
     message = message.format(counts=counts)
     bpy.context.view_layer.update()
     # The panel sees it at once (its cached fingerprint is dropped by the depsgraph update).
-    assert f"'Bar': {bodies.stale_reason(bar, cached=True)}" == message
+    assert f"'Bar': {staleness.stale_reason(bar, cached=True)}" == message
     if bar.data.shape_keys is None:
         bar.shape_key_add(name="Basis")
         bar.shape_key_add(name="Other")
@@ -130,7 +130,7 @@ def test_the_command_line_path_prepares_again_and_then_solves(ext, bar):
     assert np.abs(_baked_pose(bar, 10)[ring] - vertices(bar)[ring]).max() > 1e-3  # free ring moves
     add_a_ring_to_the_pins(bar)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    assert ext.bridge.bodies.stats["modes"] == 1 and ext.bridge.bodies.stats["tetrahedralize"] == 0
+    assert ext.bridge.stage_cache.stats["modes"] == 1 and ext.bridge.stage_cache.stats["tetrahedralize"] == 0
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
     moved = np.abs(_baked_pose(bar, 10)[ring] - vertices(bar)[ring]).max()
     assert moved < 1e-6, moved                   # the new pins hold
@@ -146,7 +146,7 @@ def test_the_command_line_rebuilds_a_stale_file(ext, bar, tmp_path):
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
     bpy.ops.wm.open_mainfile(filepath=str(out))
     bar = bpy.data.objects["Bar"]
-    assert ext.bridge.bodies.stale_reason(bar) is None
+    assert ext.bridge.staleness.stale_reason(bar) is None
     ring = x_at(bar, 1.0)
     moved = max(np.abs(_baked_pose(bar, f)[ring] - vertices(bar)[ring]).max() for f in (10, 20))
     assert moved < 1e-6, moved                   # the new pins hold
@@ -163,8 +163,8 @@ def _stage_file(ext, obj, stage):
     settings = obj.rs_elastic
     key = {"tets": settings.tets_key, "modes": settings.prepared_key,
            "reduced": settings.reduced_key}[stage]
-    bodies = ext.bridge.bodies
-    return pathlib.Path(bodies.cache_file(bodies.cache_dirs()[0], obj.name, stage, key))
+    stage_cache = ext.bridge.stage_cache
+    return pathlib.Path(stage_cache.cache_file(stage_cache.cache_dirs()[0], obj.name, stage, key))
 
 
 def _drop_pins(a):
@@ -198,12 +198,12 @@ def test_a_damaged_cache_file_is_rebuilt_with_one_warning(ext, bar, capfd, damag
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     separator = "" if problem.startswith(":") else " "
     assert warnings_in(capfd) == [f"cache file {path}{separator}{problem}; rebuilding it"]
-    assert ext.bridge.bodies.stats["modes"] == 1
+    assert ext.bridge.stage_cache.stats["modes"] == 1
     np.testing.assert_allclose(bar.rs_elastic.frequencies, before, rtol=1e-9)
     assert user_fingerprint(bar) == user
     assert ext.solver.cache.load(str(path), key)["pinned_nodes"].size
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}          # and it stays fixed
-    assert warnings_in(capfd) == [] and ext.bridge.bodies.stats["modes"] == 1
+    assert warnings_in(capfd) == [] and ext.bridge.stage_cache.stats["modes"] == 1
 
 
 def test_a_corrupt_cache_file_is_rebuilt_with_one_warning(ext, bar, capfd):
@@ -214,7 +214,7 @@ def test_a_corrupt_cache_file_is_rebuilt_with_one_warning(ext, bar, capfd):
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     (line,) = warnings_in(capfd)
     assert line.startswith(f"cache file {path} is unreadable (") and line.endswith("; rebuilding it")
-    assert ext.bridge.bodies.stats["reduced"] == 1 and ext.bridge.bodies.stats["modes"] == 0
+    assert ext.bridge.stage_cache.stats["reduced"] == 1 and ext.bridge.stage_cache.stats["modes"] == 0
     assert user_fingerprint(bar) == user
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
 
@@ -230,10 +230,10 @@ def _reversed_nodes(tet_body_cls, tet_body):
 
 
 def _replace_tets_file(ext, obj):
-    bodies = ext.bridge.bodies
+    TetBody = ext.solver.body.TetBody
     path = _stage_file(ext, obj, "tets")
-    old = bodies.TetBody.from_arrays(ext.solver.cache.load(str(path), obj.rs_elastic.tets_key))
-    new = _reversed_nodes(bodies.TetBody, old)
+    old = TetBody.from_arrays(ext.solver.cache.load(str(path), obj.rs_elastic.tets_key))
+    new = _reversed_nodes(TetBody, old)
     ext.solver.cache.save(str(path), obj.rs_elastic.tets_key,
                           dict(new.to_arrays(), parent_digest=np.array("")))
     return old, new
@@ -246,7 +246,7 @@ def test_a_rebuilt_tets_file_is_ignored_when_the_blend_keeps_its_tet_mesh(ext, b
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert warnings_in(capfd) == []
     assert (bar.rs_elastic.tets_key, bar.rs_elastic.prepared_key, bar.rs_elastic.reduced_key) == keys
-    stats = ext.bridge.bodies.stats
+    stats = ext.bridge.stage_cache.stats
     assert (stats["tetrahedralize"], stats["modes"], stats["reduced"]) == (0, 0, 0)
     inputs = ext.bridge.bodies.read_inputs(bar, bpy.context.evaluated_depsgraph_get())
     body = ext.bridge.bodies.prepare(inputs, ext.bridge.jobs.Job(None))
@@ -255,14 +255,14 @@ def test_a_rebuilt_tets_file_is_ignored_when_the_blend_keeps_its_tet_mesh(ext, b
 
 def test_modes_of_an_old_tet_mesh_are_never_mixed_with_a_rebuilt_tets_file(ext, bar, capfd):
     """A file from before the tet mesh was kept in the .blend: the tets file is all there is."""
-    del bar.rs_elastic[ext.bridge.bodies.TET_MESH]
+    del bar.rs_elastic[ext.bridge.stage_cache.TET_MESH]
     old_modes = bar.rs_elastic.prepared_key
     _, new = _replace_tets_file(ext, bar)
     capfd.readouterr()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert warnings_in(capfd) == []
     assert bar.rs_elastic.prepared_key != old_modes        # the modes key follows the contents
-    assert ext.bridge.bodies.stats["modes"] == 1
+    assert ext.bridge.stage_cache.stats["modes"] == 1
     inputs = ext.bridge.bodies.read_inputs(bar, bpy.context.evaluated_depsgraph_get())
     body = ext.bridge.bodies.prepare(inputs, ext.bridge.jobs.Job(None))
     np.testing.assert_array_equal(body.tet_body.nodes, new.nodes)
@@ -270,7 +270,7 @@ def test_modes_of_an_old_tet_mesh_are_never_mixed_with_a_rebuilt_tets_file(ext, 
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
     # And preparing again is stable: nothing is recomputed.
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    assert ext.bridge.bodies.stats["modes"] == 1
+    assert ext.bridge.stage_cache.stats["modes"] == 1
 
 
 def test_undo_of_a_re_prepare_quietly_recomputes_the_pruned_files(ext, bar, capfd):
@@ -286,13 +286,13 @@ def test_undo_of_a_re_prepare_quietly_recomputes_the_pruned_files(ext, bar, capf
     bar = bpy.data.objects["Bar"]
     make_active(bar)
     assert (bar.rs_elastic.prepared_key, bar.rs_elastic.reduced_key) == first
-    ext.bridge.bodies._MEMORY.clear()
+    ext.bridge.stage_cache._MEMORY.clear()
     ext.bridge.rs_tools._TOOLS.clear()
     user = user_fingerprint(bar)
     capfd.readouterr()
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
     assert warnings_in(capfd) == []
-    assert ext.bridge.bodies.stats["tetrahedralize"] == 0          # the tet mesh is in the file
+    assert ext.bridge.stage_cache.stats["tetrahedralize"] == 0          # the tet mesh is in the file
     assert old_files[0].exists()                                     # recomputed, same key
     # The deformer's key hashes the modes' arrays: the same unless the eigensolver's signs vary.
     assert _stage_file(ext, bar, "reduced").exists()
@@ -311,24 +311,24 @@ def test_panel_stale_check_cost_on_a_50k_vertex_mesh(ext):
     group = obj.vertex_groups.new(name="Pin")
     group.add(list(range(0, len(obj.data.vertices), 7)), 1.0, 'REPLACE')
     obj.rs_elastic.pin_group = "Pin"
-    bodies = ext.bridge.bodies
+    staleness = ext.bridge.staleness
     assert len(obj.data.vertices) >= 50_000
     obj.rs_elastic.prepared_key = "pretend"            # a prepared body, as far as the panel cares
-    bodies.record_prepared(obj, bodies.fingerprint(obj))
+    staleness.record_prepared(obj, staleness.fingerprint(obj))
     t0 = time.perf_counter()
-    assert bodies.stale_reason(obj) is None
+    assert staleness.stale_reason(obj) is None
     fresh = time.perf_counter() - t0
-    bodies.stale_reason(obj, cached=True)
+    staleness.stale_reason(obj, cached=True)
     t0 = time.perf_counter()
     for _ in range(100):
-        assert bodies.stale_reason(obj, cached=True) is None
+        assert staleness.stale_reason(obj, cached=True) is None
     cached = (time.perf_counter() - t0) / 100
     obj.data.vertices[0].co.z += 0.1
     obj.data.update()
     bpy.context.view_layer.update()
     t0 = time.perf_counter()
-    assert bodies.stale_reason(obj, cached=True) == ("the mesh's vertices moved since Prepare "
-                                                     "Body: prepare again")
+    assert staleness.stale_reason(obj, cached=True) == ("the mesh's vertices moved since Prepare "
+                                                        "Body: prepare again")
     after_edit = time.perf_counter() - t0
     print(f"stale check on {len(obj.data.vertices)} vertices: {1e3 * fresh:.1f} ms fresh, "
           f"{1e3 * cached:.3f} ms per draw cached, {1e3 * after_edit:.1f} ms on the first draw "

@@ -230,7 +230,7 @@ def test_a_saved_and_loaded_potential_evaluates_bit_for_bit_alike(bar, material,
     path = tmp_path / "potential.npz"
     np.savez(path, **potential.to_arrays())
     with np.load(path, allow_pickle=False) as data:
-        loaded = materials.ReducedPotential.from_arrays(material, dict(data))
+        loaded = materials.ReducedPotential.from_arrays(dict(data), material)
     if potential.tets is None:
         assert loaded.tets is None
     else:

@@ -358,7 +358,7 @@ def test_linear_deformer_is_exactly_linear(bar):
 def test_save_and_load_arrays_round_trip_through_the_cache(bar, tmp_path):
     deformer = bar["deformer"]
     path = tmp_path / "reduced.npz"
-    cache.save(path, "key", deformer.save_arrays())
+    cache.save(path, "key", deformer.to_arrays())
     loaded = reduced.ReducedRS.from_arrays(cache.load(path, "key"))
     z = bar["info"]["cubature_poses"][11]
     np.testing.assert_array_equal(loaded.q(z), deformer.q(z))
@@ -369,11 +369,11 @@ def test_save_and_load_arrays_round_trip_through_the_cache(bar, tmp_path):
         loaded.exact_q(z)                                          # evaluation-only until ...
     loaded.attach_full(bar["X"], bar["T"], bar["modal_rs"], bar["recon"])
     np.testing.assert_allclose(loaded.exact_q(z), deformer.exact_q(z), atol=1e-12)
-    lean = reduced.ReducedRS.from_arrays(deformer.save_arrays(include_basis=False))
+    lean = reduced.ReducedRS.from_arrays(deformer.to_arrays(include_basis=False))
     assert lean.basis is None
     np.testing.assert_array_equal(lean.q(z), deformer.q(z))
     linear = reduced.LinearDeformer(NUM_MODES, bar["W"])
-    again = reduced.LinearDeformer.from_arrays(linear.save_arrays())
+    again = reduced.LinearDeformer.from_arrays(linear.to_arrays())
     np.testing.assert_array_equal(again.displacement(z), linear.displacement(z))
 
 

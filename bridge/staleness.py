@@ -1,0 +1,147 @@
+"""Whether a prepared body still matches its object: Prepare records a fingerprint of what it read
+(mesh, modifiers, pins, settings) in `obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares
+it with the object now (main thread).
+
+The material model is not part of it: Simulate trains (or loads) the energy cubature of whichever
+model is set (`bodies.energy_stage`).
+"""
+import json
+
+import bpy
+import numpy as np
+
+from ..solver import cache
+from . import mesh_cache
+from .scene import InputError, pin_weights
+from .stage_cache import PREPARED_INPUTS
+
+_SKIPPED_MODIFIER_PROPS = {"rna_type", "name", "show_expanded", "is_active", "show_in_editmode",
+                           "show_on_cage", "show_render", "use_pin_to_last", "persistent_uid",
+                           "is_override_data_editable", "execution_time", "use_apply_on_spline"}
+
+
+def _modifier_stack(obj):
+    """A text describing the modifier stack: every modifier's type and settings."""
+    parts = []
+    for m in obj.modifiers:
+        if mesh_cache.is_bake_modifier(obj, m):     # the bake's own player is not an input
+            continue
+        values = []
+        for prop in m.bl_rna.properties:
+            if prop.identifier in _SKIPPED_MODIFIER_PROPS or prop.is_readonly \
+                    or prop.type == 'COLLECTION':
+                continue
+            value = getattr(m, prop.identifier, None)
+            if prop.type == 'POINTER':
+                value = getattr(value, "name", None)
+            elif getattr(prop, "is_array", False):
+                value = tuple(value)
+            values.append((prop.identifier, value))
+        if m.type == 'NODES':
+            values += [(k, repr(m[k])) for k in m.keys()]     # the node group's inputs
+        parts.append((m.type, m.name, values))
+    return repr(parts)
+
+
+def _geometry_fingerprint(obj):
+    """The costly part of the fingerprint: vertices, faces, modifiers, pin weights (hashes)."""
+    mesh = obj.data
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    corners = np.empty(len(mesh.loops), dtype=np.int32)
+    corner_vert = mesh.attributes.get(".corner_vert")     # 100× faster than mesh.loops
+    if corner_vert is not None:
+        corner_vert.data.foreach_get("value", corners)
+    else:
+        mesh.loops.foreach_get("vertex_index", corners)
+    sizes = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_start", sizes)
+    group = obj.rs_elastic.pin_group
+    if not group:
+        pins = "free"
+    elif obj.vertex_groups.get(group) is None:
+        pins = "missing"
+    else:
+        pins = cache.content_key(pin_weights(obj, group))
+    return {"vertex count": str(len(mesh.vertices)), "faces": cache.content_key(corners, sizes),
+            "vertices": cache.content_key(co), "modifiers": cache.content_key(_modifier_stack(obj)),
+            "pin group": pins}
+
+
+def _settings_fingerprint(settings):
+    return {"tet mesh settings": repr((settings.edge_length, settings.envelope,
+                                       settings.proxy_triangles)),
+            "material": repr((settings.youngs_modulus, settings.poisson_ratio, settings.density)),
+            "number of modes": repr(settings.num_modes),
+            "reduced RS settings": repr((settings.basis_size, settings.cubature_tets,
+                                         settings.cubature_tolerance, settings.training_poses))}
+
+
+_GEOMETRY = {}   # object pointer -> (pin group name, its index, geometry fingerprint), for draw
+
+
+def fingerprint(obj, cached=False):
+    """dict component -> text/hash of everything Prepare reads. `cached` reuses the geometry
+    part until a depsgraph update of the object or its mesh (for the panel, which runs in draw)."""
+    settings = obj.rs_elastic
+    group = obj.vertex_groups.get(settings.pin_group) if settings.pin_group else None
+    mesh = obj.data
+    tag = (settings.pin_group, None if group is None else group.index, len(mesh.vertices),
+           len(mesh.polygons), len(obj.modifiers))
+    entry = _GEOMETRY.get(obj.as_pointer()) if cached else None
+    if entry is None or entry[0] != tag:
+        entry = _GEOMETRY[obj.as_pointer()] = (tag, _geometry_fingerprint(obj))
+    return {**entry[1], **_settings_fingerprint(settings)}
+
+
+def forget_fingerprints(depsgraph_updates):
+    """Drop the cached geometry fingerprints once a mesh or an object's geometry changed (all of
+    them for None: after a load or an undo)."""
+    if depsgraph_updates is None:
+        _GEOMETRY.clear()
+        return
+    for update in depsgraph_updates:
+        if isinstance(update.id, (bpy.types.Mesh, bpy.types.Object)) and (
+                update.is_updated_geometry or isinstance(update.id, bpy.types.Mesh)):
+            _GEOMETRY.clear()     # cheap to rebuild for the few objects a panel shows
+            return
+
+
+def _what_changed(obj, before, now):
+    """What to tell the user about the first component that differs, or None."""
+    for name, value in now.items():
+        if before.get(name) == value:
+            continue
+        if name == "pin group" and value == "missing":
+            return (f"pin group '{obj.rs_elastic.pin_group}' no longer exists (renamed or deleted "
+                    "since Prepare Body): set Pin Group and prepare again")
+        if name == "vertex count":
+            what = f"the vertex count changed since Prepare Body ({before.get(name)} → {value})"
+        elif name == "vertices":
+            what = "the mesh's vertices moved since Prepare Body"
+        else:
+            what = f"the {name} changed since Prepare Body"
+        return what + ": prepare again"
+    return None
+
+
+def stale_reason(obj, cached=False):
+    """Why the prepared body no longer matches the object, in words, or None if it does."""
+    settings = obj.rs_elastic
+    if not settings.is_prepared:
+        return None
+    record = settings.get(PREPARED_INPUTS)
+    if record is None:
+        return "it was prepared by an older version of RS Elastic: prepare again"
+    return _what_changed(obj, json.loads(record), fingerprint(obj, cached=cached))
+
+
+def require_current(obj):
+    """Raise InputError saying what changed if the object's preparation is stale."""
+    reason = stale_reason(obj)
+    if reason:
+        raise InputError(f"'{obj.name}': {reason}")
+
+
+def record_prepared(obj, prepared_fingerprint):
+    obj.rs_elastic[PREPARED_INPUTS] = json.dumps(prepared_fingerprint, sort_keys=True)
