@@ -147,15 +147,15 @@ def require_follow_group(obj, has_pins):
                          "free flesh), then Prepare")
 
 
-def rig_load(obj, blender_scene, tools, frames, h, gravity, masses):
+def rig_load(obj, blender_scene, body, frames, h, gravity, masses):
     """The ``solver.rig.RigLoad`` of a rigged body over ``frames`` (h [s] apart): the bones'
     motion and gravity (3,) [m/s^2, world] as its flesh feels them; masses (N,) [kg]."""
     bones = deform_bones(obj)
     transforms = bone_transforms(obj, bones, blender_scene, frames)
-    weights = rig.node_weights(tools.embedding, vertex_weights(obj, bones), tools.nodes,
-                               tools.tets)
+    weights = rig.node_weights(body.embedding, vertex_weights(obj, bones), body.nodes,
+                               body.tets)
     motion = rig.RigMotion((np.array(frames) - frames[0]) * h, transforms)
-    return rig.RigLoad(motion, weights, masses, tools.deformer.basis, tools.nodes,
+    return rig.RigLoad(motion, weights, masses, body.deformer.basis, body.nodes,
                        gravity=gravity)
 
 
@@ -187,14 +187,14 @@ def rest_targets(obj, blender_scene, frames, tracks):
     return out
 
 
-def held_by_follow_weights(obj, tools, masses, potential):
+def held_by_follow_weights(obj, body, masses, potential):
     """``potential`` plus the springs of the Follow Rig weights between 0 and the pin threshold
     (``solver.rig.follow_stiffness``, stiffest at the body's fastest mode), or ``potential``
     itself when the group paints only 0 and pins."""
     weights = scene.group_weights(obj, obj.rs_elastic.pin_group)
     if not np.any((weights > 0.0) & (weights < rig.PIN_THRESHOLD)):
         return potential
-    follow = rig.node_values(tools.embedding, weights, tools.nodes, tools.tets)[:, 0]
-    omega = float(np.sqrt(np.max(tools.body.linear_modes.eigenvalues)))
-    stiffness = rig.follow_stiffness(follow, masses, tools.deformer.basis, omega)
-    return rig.HeldPotential(potential, tools.deformer, stiffness)
+    follow = rig.node_values(body.embedding, weights, body.nodes, body.tets)[:, 0]
+    omega = float(np.sqrt(np.max(body.linear_modes.eigenvalues)))
+    stiffness = rig.follow_stiffness(follow, masses, body.deformer.basis, omega)
+    return rig.HeldPotential(potential, body.deformer, stiffness)

@@ -353,22 +353,18 @@ def cached_energy(energy, body):
     return potential if potential is not None and _fits_body(body)(potential) else None
 
 
-def energy_stage(energy, body, job, modal_rs=None, start=0.0, end=1.0):
+def energy_stage(energy, body, job, start=0.0, end=1.0):
     """The reduced potential (`materials.ReducedPotential`) of EnergyInputs `energy` on the
     PreparedBody: from memory, the disk cache, or trained (worker-thread safe; its progress runs
-    from `start` to `end`, and a cancel stops the training). modal_rs: optional callable giving
-    the body's (E, 9, m) modal RS coordinates, if the caller keeps them; computed otherwise."""
+    from `start` to `end`, and a cancel stops the training)."""
     parent = energy_parent(body)
-    X, T = body.tet_body.nodes, body.tet_body.tets
     title = f"{energy.label} energy cubature"
 
     def compute():
         job.step(start, f"{title}: RS coordinates of the modes")
         stage_cache.stats["energy"] += 1
-        Y = modal_rs() if modal_rs is not None else rs.linear_rs(rs.rs_operator(X, T),
-                                                                 body.linear_modes.vectors)
         potential, _ = materials.prepare_potential(
-            energy.material, Y, body.tet_body.volumes,
+            energy.material, body.modal_rs, body.volumes,
             eigenvalues=body.linear_modes.eigenvalues, **ENERGY_TRAINING,
             progress=lambda f, message: job.step(start + (end - start) * f, f"{title}: {message}"))
         return potential

@@ -15,7 +15,7 @@ import bpy
 
 from . import bake
 from . import spacetime_inputs
-from .spacetime_inputs import MAX_FRAMES
+from .scene import MAX_FRAMES
 
 OPERATORS = {"spacetime": "solve_spacetime", "simulate": "simulate"}
 

@@ -1,23 +1,10 @@
 """Read the space-time constraints of a body from the scene: handles (Empties bound to vertex
 groups) and pose keys (shape keys keyed to 1 on a frame). Main thread only."""
-import dataclasses
-
 import numpy as np
 
 from ..solver import spacetime
+from ..solver.problems import HandleTrack
 from . import animation, bake, scene
-
-
-@dataclasses.dataclass
-class HandleTrack:
-    """One handle's targets, in the body's object space (its rest frame)."""
-    name: str
-    vertices: np.ndarray   # (k,) base-vertex indices
-    weight: float
-    frames: np.ndarray     # (c,) int scene frames
-    targets: np.ndarray    # (c, 3) metres, object space
-    rotation_frames: np.ndarray = None   # (o,) int scene frames of the orientation targets
-    rotations: np.ndarray = None         # (o, 3, 3) handle rotation from rest, object space
 
 
 ROTATION_PATHS = ("rotation_euler", "rotation_quaternion", "rotation_axis_angle")

@@ -36,15 +36,14 @@ class LiveSolution:
     frames: list          # scene frames, ascending
     Z: np.ndarray         # (F, r) modal inputs, the next re-solve's warm start
     inputs: np.ndarray    # (F, m) deformer inputs S z per frame
-    tools: object         # rs_tools.RSTools the solve used (deformer, surface basis)
+    body: object          # the solver.body.PreparedBody the solve used
     rest: np.ndarray      # (n, 3) base vertices [object units]
     status: str           # one line for the panel
 
     def pose(self, index):
         """(n, 3) base-vertex positions of frame ``frames[index]``: only the shown frame is
         reconstructed, which is most of a re-solve's cost when done for every frame."""
-        q = self.tools.deformer.q(self.inputs[index])                       # (rB,)
-        return self.rest + (self.tools.surface_basis @ q).reshape(-1, 3)
+        return self.body.surface_positions(self.rest, self.inputs[index])
 
 
 SOLUTIONS = {}        # object name -> LiveSolution (session only, like the solve status)
@@ -116,7 +115,7 @@ def stop(obj):
 
 
 def _store(obj, blender_scene, job, Z, inputs, status):
-    SOLUTIONS[obj.name] = LiveSolution(list(job.frames), Z, inputs, job.tools, job.rest, status)
+    SOLUTIONS[obj.name] = LiveSolution(list(job.frames), Z, inputs, job.body, job.rest, status)
     ERRORS.pop(obj.name, None)
     show(obj, blender_scene)
 

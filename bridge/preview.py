@@ -13,7 +13,7 @@ by linked duplicates shows no preview: its keys belong to every object using it.
 """
 import numpy as np
 
-from . import bake, mesh_cache, rs_tools, scene
+from . import bake, mesh_cache, prepared, scene
 from .scene import InputError
 
 PREVIEW_KEY = bake.PREVIEW_KEY
@@ -27,13 +27,13 @@ def refresh(obj):
         hide(obj)
 
 
-def preview_positions(obj, tools):
+def preview_positions(obj, body):
     """(n, 3) base-vertex positions for the selected mode, amplitude and method."""
     settings = obj.rs_elastic
     rest = scene.base_vertices(obj)
-    modes = tools.body.linear_modes
+    modes = body.linear_modes
     index = min(settings.preview_mode, modes.vectors.shape[1]) - 1
-    linear = tools.surface(modes.vectors[:, index].reshape(-1, 3))
+    linear = body.surface_mode(index)
     peak = np.linalg.norm(linear, axis=1).max()
     if peak == 0.0:
         return rest
@@ -41,23 +41,23 @@ def preview_positions(obj, tools):
     scale = settings.preview_amplitude * diagonal / peak
     if settings.preview_method == 'LINEAR':
         return rest + scale * linear
-    if settings.preview_method == 'REDUCED' and tools.deformer is not None:
-        z = np.zeros(tools.deformer.num_coords)
+    if settings.preview_method == 'REDUCED' and body.deformer is not None:
+        z = np.zeros(body.deformer.num_coords)
         z[index] = scale
-        return rest + (tools.surface_basis @ tools.deformer.q(z)).reshape(-1, 3)
-    y = tools.modal_rs[:, :, index] * scale
-    return rest + tools.surface(tools.reconstruction.reconstruct(y))
+        return body.surface_positions(rest, z)
+    y = body.modal_rs[:, :, index] * scale
+    return rest + body.surface(body.reconstruction.reconstruct(y))
 
 
 def show(obj):
-    tools = rs_tools.for_object(obj)
-    if tools is None:
+    body = prepared.for_object(obj)
+    if body is None:
         return False  # not prepared for this mesh; the panel says so
     try:
         scene.require_single_user(obj)
     except InputError:
         return False  # linked duplicates: the panel's Prepare already refuses them
-    positions = preview_positions(obj, tools)
+    positions = preview_positions(obj, body)
     key = _preview_key(obj)
     if key is None:
         key, = bake.add_owned_keys(obj, [PREVIEW_KEY], "preview")

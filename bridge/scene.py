@@ -79,6 +79,29 @@ def check_settings(obj):
                              f"{value:g} {unit}")
 
 
+MAX_FRAMES = 10000   # a bake is one shape key per frame: beyond this it is not usable
+
+
+def frame_range(obj, blender_scene):
+    """The scene frames a solve or simulation of ``obj`` covers: its own range or the scene's.
+    InputError when it has fewer than 3 or more than MAX_FRAMES frames."""
+    settings = obj.rs_elastic
+    if settings.use_scene_range:
+        start, end = blender_scene.frame_start, blender_scene.frame_end
+    else:
+        start, end = settings.frame_start, settings.frame_end
+    if end - start + 1 < 3:
+        raise InputError(f"The frame range {start}–{end} has fewer than 3 frames")
+    if end - start + 1 > MAX_FRAMES:
+        raise InputError(f"The frame range {start}–{end} has more than {MAX_FRAMES} frames")
+    return list(range(start, end + 1))
+
+
+def frame_interval(blender_scene):
+    """h [s]: the time from one frame to the next at the scene's frame rate."""
+    return blender_scene.render.fps_base / blender_scene.render.fps
+
+
 GRAVITY_LIMIT = 1000.0    # m/s², about 100 g
 
 
@@ -111,6 +134,22 @@ def base_vertices(obj):
     return co.reshape(-1, 3)
 
 
+def key_block_positions(block):
+    """(n, 3) float64 object-space positions a shape key holds."""
+    co = np.empty(len(block.data) * 3, dtype=np.float32)
+    block.data.foreach_get("co", co)
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def shape_key_positions(obj, name):
+    """(n, 3) float64 positions of the object's shape key ``name``; InputError if it has none."""
+    keys = obj.data.shape_keys
+    block = keys.key_blocks.get(name) if keys is not None else None
+    if block is None:
+        raise InputError(f"'{name}' is not a shape key of '{obj.name}'")
+    return key_block_positions(block)
+
+
 def base_triangles(obj):
     """(t, 3) int64 triangles of the mesh's own faces (over ``base_vertices``)."""
     mesh = obj.data
@@ -140,46 +179,24 @@ def evaluated_triangles(obj, depsgraph):
     return V.reshape(-1, 3), F.reshape(-1, 3)
 
 
-def vertex_group_mask(obj, group_name):
-    """(n,) bool: vertices of the mesh with a non-zero weight in the named group.
-
-    Read once per preparation; Blender has no bulk accessor for group weights, so this walks
-    the vertices' group memberships a single time.
-    """
+def group_weights(obj, group_name, label="Vertex group"):
+    """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it).
+    InputError "<label> '<name>' does not exist" when the object has no such group."""
     group = obj.vertex_groups.get(group_name)
     if group is None:
-        raise InputError(f"Pin group '{group_name}' does not exist on '{obj.name}'")
-    index = group.index
-    mask = np.zeros(len(obj.data.vertices), dtype=bool)
-    members = [v.index for v in obj.data.vertices
-               for g in v.groups if g.group == index and g.weight > 0.0]
-    mask[members] = True
-    return mask
+        raise InputError(f"{label} '{group_name}' does not exist on '{obj.name}'")
+    return group_weight_matrix(obj, [group.index])[:, 0]
+
+
+def vertex_group_mask(obj, group_name):
+    """(n,) bool: vertices with a non-zero weight in the named group."""
+    return group_weights(obj, group_name) > 0.0
 
 
 def pin_weights(obj, group_name):
-    """(n,) float32 weights of the named vertex group over the base vertices (0 outside it).
-
-    Blender has no bulk accessor for group weights, so this walks the memberships once.
-    """
-    group = obj.vertex_groups.get(group_name)
-    if group is None:
-        raise InputError(f"Pin group '{group_name}' does not exist on '{obj.name}'")
-    index = group.index
-    weights = np.zeros(len(obj.data.vertices), dtype=np.float32)
-    for v in obj.data.vertices:
-        for g in v.groups:
-            if g.group == index:
-                weights[v.index] = g.weight
-    return weights
-
-
-def group_weights(obj, group_name):
-    """(n,) float64 weights of the named vertex group over the mesh's vertices (0 outside it)."""
-    group = obj.vertex_groups.get(group_name)
-    if group is None:
-        raise InputError(f"Vertex group '{group_name}' does not exist on '{obj.name}'")
-    return group_weight_matrix(obj, [group.index])[:, 0]
+    """(n,) float32 weights of the pin group (Blender keeps weights as float32, so this is
+    exact; they are hashed into the modes key and the staleness fingerprint)."""
+    return group_weights(obj, group_name, label="Pin group").astype(np.float32)
 
 
 def group_weight_matrix(obj, group_indices):

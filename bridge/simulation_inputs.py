@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import contact, dynamics, inversion, materials
-from . import (armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs,
+from . import (armature, bake, bodies, colliders, jobs, prepared, scene,
                stage_cache)
 from .jobs import Cancelled
 from .scene import InputError
@@ -49,20 +49,19 @@ def energy_work(obj):
     energy = bodies.energy_inputs(obj)
     if energy is None:
         return None
-    tools = spacetime_inputs.prepared_tools(obj)
-    if bodies.cached_energy(energy, tools.body) is not None:
+    tools = prepared.require(obj)
+    if bodies.cached_energy(energy, tools) is not None:
         return None
-    return lambda job: bodies.energy_stage(energy, tools.body, job,
-                                           modal_rs=lambda: tools.modal_rs)
+    return lambda job: bodies.energy_stage(energy, tools, job)
 
 
 def record_energy(obj):
     """Main thread, after a simulation: note the cubature it used among the object's cache
     files (so a later Prepare keeps it and a save copies it next to the .blend)."""
     energy = bodies.energy_inputs(obj)
-    tools = rs_tools.for_object(obj)
+    tools = prepared.for_object(obj)
     if energy is not None and tools is not None:
-        parent = bodies.energy_parent(tools.body)
+        parent = bodies.energy_parent(tools)
         stage_cache.record_energy(obj, parent, energy.key(parent))
 
 
@@ -74,7 +73,7 @@ def potential_for(tools, settings):
     energy = bodies.energy_inputs(settings.id_data)
     if energy is not None:
         job = jobs.Job(None)
-        potential = bodies.energy_stage(energy, tools.body, job, modal_rs=lambda: tools.modal_rs)
+        potential = bodies.energy_stage(energy, tools, job)
         for message in job.warnings:
             print(f"RS Elastic: {message}")
         return potential
@@ -106,9 +105,9 @@ def gather(obj, blender_scene):
     """Validate and set up the simulation. Raises InputError."""
     scene.require_body(obj)
     bake.require_target(obj)
-    tools = spacetime_inputs.prepared_tools(obj)
+    tools = prepared.require(obj)
     settings = obj.rs_elastic
-    frames = spacetime_inputs.frame_range(obj, blender_scene)
+    frames = scene.frame_range(obj, blender_scene)
     warnings = []
     free = len(tools.pinned_nodes) == 0
     fps = blender_scene.render.fps / blender_scene.render.fps_base

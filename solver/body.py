@@ -1,6 +1,11 @@
 """A prepared body as arrays: its tet mesh with the embedding of the render mesh (``TetBody``) and
 what the preparation stages made of it (``PreparedBody``).
 
+A prepared body also makes, on first use, the solver objects every user of it shares (the RS
+coordinates of its modes, the Poisson reconstructions, the pose transfer, the surface basis Φ B):
+their factorisations are made once per body and reused by every preview update, interpolated
+frame, solve and simulation.
+
 The tet body keeps what every user of it derives from the mesh alone (unsigned tet volumes,
 lumped masses per density), computed once. Each stage object (``TetBody``,
 ``modes.LinearModes``, ``reduced.ReducedRS``, ``materials.ReducedPotential``) converts itself
@@ -12,7 +17,7 @@ import functools
 import numpy as np
 import scipy.sparse as sp
 
-from . import fem, materials, modes, reduced
+from . import fem, materials, modes, reduced, rs, transfer
 
 
 @dataclasses.dataclass
@@ -72,7 +77,86 @@ class PreparedBody:
         """(n, N) csr mapping node displacements to base-vertex displacements (pins hold)."""
         return self.tet_body.embedding if self.pinned_embedding is None else self.pinned_embedding
 
+    # --- the tet mesh, as every solver function takes it -------------------------------------
+    @property
+    def nodes(self):
+        """(N, 3) rest node positions [m]."""
+        return self.tet_body.nodes
+
+    @property
+    def tets(self):
+        """(E, 4) int64 tets."""
+        return self.tet_body.tets
+
+    @property
+    def embedding(self):
+        """(n, N) csr barycentric weights: base vertices = embedding @ nodes."""
+        return self.tet_body.embedding
+
+    @property
+    def volumes(self):
+        """(E,) unsigned tet volumes [m^3] (read-only)."""
+        return self.tet_body.volumes
+
+    def lumped_masses(self, density):
+        """(N,) lumped node masses [kg] for density [kg/m^3] (read-only)."""
+        return self.tet_body.lumped_masses(density)
+
+    @functools.cached_property
+    def pinned_nodes(self):
+        """(p,) int64 pinned node indices (empty for a free body)."""
+        return np.asarray(self.linear_modes.pinned_nodes, dtype=np.int64)
+
+    # --- solver objects made once per body ---------------------------------------------------
+    @functools.cached_property
+    def modal_rs(self):
+        """(E, 9, r): linear RS coordinates of each mode, Q W."""
+        return rs.linear_rs(rs.rs_operator(self.nodes, self.tets), self.linear_modes.vectors)
+
+    @functools.cached_property
+    def reconstruction(self):
+        """Ψ honouring the body's pins (or its mean position for a free body)."""
+        pins = self.pinned_nodes if len(self.pinned_nodes) else None
+        return rs.PoissonReconstruction(self.nodes, self.tets, pinned_nodes=pins)
+
+    @functools.cached_property
+    def free_reconstruction(self):
+        """Ψ with only the mean position fixed: for poses that move the pins."""
+        return rs.PoissonReconstruction(self.nodes, self.tets)
+
+    @functools.cached_property
+    def neighbours(self):
+        """(E, 4) face neighbours of each tet (-1 on the boundary)."""
+        return rs.tet_neighbours(self.tets)
+
+    @functools.cached_property
+    def pose_transfer(self):
+        """Carries render-vertex poses to the tet nodes (``transfer.PoseTransfer``)."""
+        return transfer.PoseTransfer(self.nodes, self.tets, self.embedding)
+
+    @functools.cached_property
+    def surface_basis(self):
+        """Φ B (3n, rB): base-vertex displacement per reduced coordinate, node-major rows."""
+        B = self.deformer.basis
+        N, rB = len(self.nodes), B.shape[1]
+        return (self.displacement_embedding @ B.reshape(N, 3 * rB)).reshape(-1, rB)
+
+    # --- positions of the render mesh ------------------------------------------------------------
+    def surface(self, node_displacement):
+        """(n, 3) base-vertex displacement of a node displacement (N, 3)."""
+        return self.displacement_embedding @ node_displacement
+
     def surface_mode(self, index):
         """(n, 3) displacement of the base vertices for mode `index` (0-based), mass-normalised."""
-        w = self.linear_modes.vectors[:, index].reshape(-1, 3)
-        return self.displacement_embedding @ w
+        return self.surface(self.linear_modes.vectors[:, index].reshape(-1, 3))
+
+    def surface_positions(self, rest, inputs):
+        """Base-vertex positions rest + Φ B q(z) of deformer inputs z.
+
+        rest (n, 3) [m] the base vertices at rest; inputs (m,) one pose or (F, m) several.
+        Returns (n, 3) or (F, n, 3).
+        """
+        inputs = np.asarray(inputs, dtype=np.float64)
+        q = self.deformer.q_batch(np.atleast_2d(inputs))                        # (F, rB)
+        positions = rest[None] + (q @ self.surface_basis.T).reshape(len(q), -1, 3)
+        return positions[0] if inputs.ndim == 1 else positions

@@ -252,15 +252,21 @@ def log_rotation(R, reference=None):
     return _closest_branch(omega, np.asarray(reference, dtype=np.float64).reshape(-1, 3))
 
 
+AXIS_FREE_BELOW = 1e-9   # rad: a smaller principal rotation has no axis worth keeping
+
+
 def _closest_branch(omega, reference):
     """(E, 3) representative (theta + 2 pi k) n of principal omega closest to reference.
 
     |(theta + 2 pi k) n - ref|^2 = (theta + 2 pi k - ref.n)^2 + |ref_perp|^2, so k rounds
-    (ref.n - theta) / 2 pi. At theta = 0 the axis is free: take the reference's direction.
+    (ref.n - theta) / 2 pi. At theta = 0 the axis is free: take the reference's direction. So
+    also below AXIS_FREE_BELOW, where the principal axis is rounding noise (a full turn, 2 pi k,
+    comes back as a rotation vector of 1e-16 in any direction).
     """
     theta = np.linalg.norm(omega, axis=1)
     ref_norm = np.linalg.norm(reference, axis=1)
-    axis = np.where((theta > 0.0)[:, None], omega / np.where(theta > 0.0, theta, 1.0)[:, None],
+    defined = theta > AXIS_FREE_BELOW
+    axis = np.where(defined[:, None], omega / np.where(defined, theta, 1.0)[:, None],
                     reference / np.where(ref_norm > 0.0, ref_norm, 1.0)[:, None])
     k = np.round((np.einsum("ei,ei->e", reference, axis) - theta) / TWO_PI)
     return (theta + TWO_PI * k)[:, None] * axis

@@ -202,7 +202,7 @@ def simulate_frames(ext, obj):
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
     bpy.context.view_layer.objects.active = obj
     assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
-    tools = ext.bridge.rs_tools.for_object(obj)
+    tools = ext.bridge.prepared.for_object(obj)
     return ext.bridge.simulation_inputs.potential_for(tools, obj.rs_elastic)
 
 
@@ -273,7 +273,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     assert stats["energy"] == 3 and len(energy_files(folder)) == 3
     # A new session: all three are loaded, none trained.
     ext.bridge.stage_cache._MEMORY.clear()
-    ext.bridge.rs_tools._TOOLS.clear()
+    ext.bridge.prepared._BODIES.clear()
     assert ext.bridge.bodies.energy_ready(obj) is True     # from its file
     for kind, stiffening in (('STVK', 5.0), ('FUNG', 25.0), ('FUNG', 5.0)):
         obj.rs_elastic.material_model, obj.rs_elastic.fung_stiffening = kind, stiffening

@@ -88,7 +88,7 @@ def forget_the_cache(ext, blend):
     shutil.rmtree(blend.parent / f"blendcache_{blend.stem}", ignore_errors=True)
     shutil.rmtree(ext.bridge.stage_cache.cache_dirs()[-1], ignore_errors=True)
     ext.bridge.stage_cache._MEMORY.clear()
-    ext.bridge.rs_tools._TOOLS.clear()
+    ext.bridge.prepared._BODIES.clear()
 
 
 def bake_here(ext, blend, recorder):

@@ -212,7 +212,7 @@ def test_material_optimisation_chooses_modes_and_stays_within_material_freedom(e
     job_inputs = inputs.gather(obj, bpy.context.scene)
     problem = job_inputs.problem
     m, r = problem.sampling.shape
-    assert m == job_inputs.tools.deformer.num_coords and r == inputs.optimised_modes(m) < m
+    assert m == job_inputs.body.deformer.num_coords and r == ext.solver.problems.optimised_modes(m) < m
     assert problem.material_freedom == pytest.approx(1.2)
     result, poses = inputs.solve(job_inputs, _QuietJob())
     frequency = np.sqrt(result.eigenvalues / problem.eigenvalues)

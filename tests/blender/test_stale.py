@@ -120,7 +120,7 @@ def test_a_stale_body_is_refused_with_what_changed(ext, bar, change, message):
             operator(**arguments)
         assert str(refused.value).strip().splitlines() == [f"Error: {message}"]
         assert user_fingerprint(bar) == user
-    assert ext.bridge.rs_tools.for_object(bar) is None          # nor does the preview use it
+    assert ext.bridge.prepared.for_object(bar) is None          # nor does the preview use it
 
 
 def test_the_command_line_path_prepares_again_and_then_solves(ext, bar):
@@ -287,7 +287,7 @@ def test_undo_of_a_re_prepare_quietly_recomputes_the_pruned_files(ext, bar, capf
     make_active(bar)
     assert (bar.rs_elastic.prepared_key, bar.rs_elastic.reduced_key) == first
     ext.bridge.stage_cache._MEMORY.clear()
-    ext.bridge.rs_tools._TOOLS.clear()
+    ext.bridge.prepared._BODIES.clear()
     user = user_fingerprint(bar)
     capfd.readouterr()
     assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}

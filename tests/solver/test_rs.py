@@ -243,6 +243,17 @@ def test_log_rotation_picks_the_branch_closest_to_the_reference():
                                -(np.pi + d) * n[None], atol=1e-12)
 
 
+
+def test_a_full_turn_keeps_the_reference_axis():
+    """A rotation by exactly 2 pi k comes back from its matrix as a rotation vector of rounding
+    size in an arbitrary direction; the branch closest to a reference near 2 pi n is 2 pi n."""
+    n = unit((0.3, 1.0, -0.2))
+    # The identity, up to rounding, as a pose's polar decomposition gives it.
+    full_turn = rs.exp_rotation((2.5 * n)[None]) @ rs.exp_rotation(((2 * np.pi - 2.5) * n)[None])
+    log = rs.log_rotation(full_turn, reference=(2 * np.pi - 0.6) * n[None])
+    np.testing.assert_allclose(log, 2 * np.pi * n[None], atol=1e-9)
+
+
 # 7. Pinned reconstruction and the Laplacian --------------------------------------------------
 
 def test_pinned_reconstruction_holds_pins_and_solves_normal_equations():

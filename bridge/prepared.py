@@ -1,0 +1,41 @@
+"""Prepared bodies in memory, per prepared key: the solver's ``PreparedBody`` of an object.
+
+A prepared body makes its factorisations (the Poisson reconstruction, the pose transfer) once
+and keeps them, so every preview update, interpolated frame, solve and simulation of the same
+preparation reuses them.
+"""
+import collections
+
+from . import bodies, staleness
+from .scene import InputError
+
+_BODIES = collections.OrderedDict()   # prepared key -> PreparedBody
+_LIMIT = 8
+
+
+def for_object(obj):
+    """The object's ``PreparedBody``, or None if it is not prepared for this mesh (or is stale:
+    see staleness.stale_reason)."""
+    if staleness.stale_reason(obj, cached=True):
+        return None
+    key = obj.rs_elastic.prepared_key + obj.rs_elastic.reduced_key
+    if key in _BODIES:
+        _BODIES.move_to_end(key)
+        return _BODIES[key]
+    body = bodies.load_prepared(obj)
+    if body is None or body.embedding.shape[0] != len(obj.data.vertices):
+        return None
+    _BODIES[key] = body
+    while len(_BODIES) > _LIMIT:
+        _BODIES.popitem(last=False)
+    return body
+
+
+def require(obj):
+    """The object's ``PreparedBody`` with its reduced deformer; InputError saying what changed
+    since Prepare Body, or that it is not prepared."""
+    staleness.require_current(obj)
+    body = for_object(obj)
+    if body is None or body.deformer is None:
+        raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")
+    return body

@@ -1,0 +1,178 @@
+"""The solver's problems, built from a prepared body (``body.PreparedBody``) and plain inputs.
+
+``spacetime_problem`` turns handle tracks, pose keys and a take into a ``SpaceTimeProblem``;
+``simulation`` turns a material and the loads into a ``dynamics.Simulation``. The Blender layer
+only reads the scene into these inputs, and the bench and the tests call the same functions.
+"""
+import dataclasses
+
+import numpy as np
+
+from . import accuracy, poses, spacetime
+
+
+@dataclasses.dataclass
+class HandleTrack:
+    """One handle's targets, in the body's object space (its rest frame)."""
+    name: str
+    vertices: np.ndarray   # (k,) base-vertex indices
+    weight: float
+    frames: np.ndarray     # (c,) int scene frames
+    targets: np.ndarray    # (c, 3) metres, object space
+    rotation_frames: np.ndarray = None   # (o,) int scene frames of the orientation targets
+    rotations: np.ndarray = None         # (o, 3, 3) handle rotation from rest, object space
+
+
+@dataclasses.dataclass
+class SpaceTimeSettings:
+    """How an edit is solved (the body's space-time settings, as plain numbers)."""
+    h: float                      # s per frame
+    damping_mass: float = 0.0     # Rayleigh alpha [1/s]
+    damping_stiffness: float = 0.0   # Rayleigh beta [s]
+    tightness: float = spacetime.TIGHTNESS
+    optimize_material: bool = False
+    material_freedom: float = 1.5
+    take_weight: float = 0.01     # a take frame's weight relative to a handle's
+    handle_gamma_factor: float = 1.0   # handles weigh this much more (a rig's loads, see bridge)
+
+
+@dataclasses.dataclass
+class SpaceTimeSetup:
+    """A space-time problem and what the caller needs to read its result back."""
+    problem: spacetime.SpaceTimeProblem
+    track_slices: list            # per track: slice of its rows among the handle constraints
+    rest_centroids: np.ndarray    # (t, 3) each track's vertices' rest centroid [m]
+    warnings: list
+
+
+POSE_SAMPLES = 32   # vertices per pose key that must reach the sculpted positions
+
+
+def spread_sample(points, count):
+    """Indices (count,) of points (n, 3) spread over the set (farthest-point sampling)."""
+    count = min(count, len(points))
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return np.array(chosen)
+
+
+def optimised_modes(candidates):
+    """How many modes material optimisation optimises out of ``candidates`` prepared ones.
+
+    [L14]'s sampling matrix S (candidates x optimised) chooses which combinations of the
+    candidate modes matter; with as many optimised modes as candidates it could only mix them.
+    Two thirds keep most of the edit's freedom while leaving S a third of the modes to pick from.
+    """
+    return max(1, -(-2 * candidates // 3)) if candidates > 1 else candidates
+
+
+def handle_parts(body, rest, tracks, first):
+    """Constraint rows of the handle tracks, frames counted from scene frame ``first``.
+
+    Returns (parts: per track one or two HandleConstraints argument tuples, track_slices,
+    rest_centroids (t, 3), warnings).
+    """
+    parts, slices, centroids, warnings, count = [], [], [], [], 0
+    for track in tracks:
+        rows, centroid = spacetime.handle_geometry(rest, body.surface_basis, track.vertices)
+        centroids.append(centroid)
+        c = len(track.frames)
+        parts.append((track.frames - first, np.repeat(rows[None], c, axis=0),
+                      np.repeat(centroid[None], c, axis=0), track.targets,
+                      np.full(c, track.weight)))
+        if track.rotations is not None:     # Orientation: spokes of the same vertices
+            try:
+                spoke_rows, spokes = spacetime.orientation_geometry(rest, body.surface_basis,
+                                                                    track.vertices)
+            except ValueError:
+                warnings.append(f"Handle '{track.name}': its vertices lie on a line, so they "
+                                "have no orientation to follow; only its position is used")
+            else:
+                part = spacetime.orientation_constraints(track.rotation_frames - first,
+                                                         track.rotations, spoke_rows, spokes,
+                                                         track.weight)
+                parts.append(part)
+                c += len(part[0])
+        slices.append(slice(count, count + c))
+        count += c
+    return parts, slices, np.array(centroids).reshape(-1, 3), warnings
+
+
+def pose_key_parts(body, rest, pose_keys, first):
+    """Constraint rows of pose keys [(scene frame, positions (n, 3))].
+
+    A pose key is met as positions of a spread sample of vertices: a sculpted pose need not be
+    one the modes' RS coordinates can fit, and what the animator sees is the positions.
+    """
+    if not pose_keys:
+        return []
+    samples = spread_sample(rest, POSE_SAMPLES)
+    sample_rows = body.surface_basis.reshape(len(rest), 3, -1)[samples]          # (s, 3, rB)
+    weights = np.full(len(samples), 1.0 / len(samples))
+    return [(np.full(len(samples), frame - first), sample_rows, rest[samples],
+             positions[samples], weights) for frame, positions in pose_keys]
+
+
+def spacetime_problem(body, rest, frames, tracks=(), pose_keys=(), take=None, settings=None,
+                      external_forces=None):
+    """The ``SpaceTimeProblem`` of an edit of a prepared body.
+
+    rest (n, 3) [m] base vertices; frames: the scene frames solved, ascending; tracks:
+    ``HandleTrack``s; pose_keys: [(scene frame, positions (n, 3))]; take: (scene frames (k,),
+    poses (k, n, 3)) followed softly where nothing else constrains, or None;
+    settings: ``SpaceTimeSettings``; external_forces: None, or a function (times (F,) [s],
+    dq/dz at rest (rB, m)) -> (F, m) modal forces (a rig's loads). Returns a ``SpaceTimeSetup``;
+    ValueError when there is nothing to solve for.
+    """
+    first, count = frames[0], len(frames)
+    parts, slices, centroids, warnings = handle_parts(body, rest, tracks, first)
+    parts += pose_key_parts(body, rest, list(pose_keys), first)
+    take_frames, take_poses = [], []
+    if take is not None:
+        inside = [i for i, f in enumerate(take[0]) if first <= f <= frames[-1]]
+        take_frames = [take[0][i] for i in inside]
+        take_poses = [take[1][i] for i in inside]
+    if not parts and not take_frames:
+        raise ValueError("nothing to solve for")
+
+    candidates = body.deformer.num_coords
+    optimised = optimised_modes(candidates) if settings.optimize_material else candidates
+    eigenvalues = body.linear_modes.eigenvalues[:optimised]    # S = [I; 0] (candidates x optimised)
+    damping = spacetime.rayleigh_damping(eigenvalues, settings.damping_mass,
+                                         settings.damping_stiffness)
+    handles = None
+    if parts:
+        handles = spacetime.HandleConstraints(*(np.concatenate(p) for p in zip(*parts)))
+    gamma, keyframe_weight = spacetime.suggest_weights(
+        settings.h, eigenvalues, damping, body.deformer,
+        None if handles is None else handles.rows, tightness=settings.tightness)
+    keyframes = None
+    if take_frames:     # the take's frames, fitted in RS coordinates (they are physical poses)
+        keyframes = spacetime.Keyframes(np.array(take_frames) - first,
+                                        poses.poses_to_modal(body, take_poses),
+                                        np.full(len(take_frames),
+                                                keyframe_weight * settings.take_weight))
+    external = None
+    if external_forces is not None:
+        jacobian = body.deformer.q_jacobian(np.zeros(candidates))
+        external = external_forces(np.arange(count) * settings.h, jacobian)[:, :optimised]
+    problem = spacetime.SpaceTimeProblem(
+        frames=count, h=settings.h, eigenvalues=eigenvalues, damping=damping,
+        external_forces=external, deformer=body.deformer, handles=handles, keyframes=keyframes,
+        gamma=gamma * settings.handle_gamma_factor, fix_start=take is None,
+        material_freedom=settings.material_freedom)
+    return SpaceTimeSetup(problem, slices, centroids, warnings)
+
+
+def handle_stretch_demands(body, rest_centroids, tracks):
+    """Per handle track: (the stretch its keyed targets demand, a fraction; the scene frame where
+    it is largest) (``accuracy.target_stretch``). Orientation spokes are left out."""
+    if not tracks:
+        return []
+    demands, frames = accuracy.target_stretch(
+        body.nodes, body.tets, body.pinned_nodes, np.asarray(rest_centroids),
+        [track.frames for track in tracks], [track.targets for track in tracks])
+    return [(float(d), int(f)) for d, f in zip(demands, frames)]

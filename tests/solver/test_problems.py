@@ -1,0 +1,140 @@
+"""Problem assembly from a prepared body (solver.problems) and poses read through it
+(solver.poses).
+
+Oracles: the handle rows are the mean of the handle vertices' rows of Φ B (a direct numpy
+computation); a handle keyed where the model itself puts a vertex group is met; modal
+coordinates of poses the modes made come back; an interpolation returns its end poses exactly.
+"""
+import numpy as np
+import pytest
+
+from solver import body as body_module
+from solver import embed, fem, meshgen, modes, poses, problems, reduced, rs, spacetime
+
+SIZE = (4.0, 1.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def bar():
+    """A prepared 4:1:1 bar pinned at x = 0 (8 x 2 x 2 cells), 6 modes; its render mesh is
+    a cloud of points inside it."""
+    X, T = meshgen.box_tet_mesh(SIZE, (8, 2, 2))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    masses = fem.lumped_masses(X, T, 1000.0)
+    linear = modes.linear_modes(fem.stiffness_matrix(X, T, 1e6, 0.45), masses, 6, pinned)
+    recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned)
+    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, linear.vectors, linear.eigenvalues,
+                                             recon, seed=0)
+    # The render mesh: the tet nodes and points inside the bar away from the pinned end, so a
+    # render vertex is pinned exactly when it sits on a pinned node.
+    rng = np.random.default_rng(7)
+    points = np.vstack([X, rng.uniform([0.6, 0.0, 0.0], SIZE, (60, 3))])
+    tet_body = body_module.TetBody(X, T, embed.embed_points(X, T, points))
+    prepared = body_module.PreparedBody(tet_body, linear, deformer)
+    return prepared, tet_body.embedding @ X
+
+
+def test_optimised_modes_are_two_thirds_rounded_up():
+    assert [problems.optimised_modes(m) for m in (1, 2, 3, 6, 20)] == [1, 2, 2, 4, 14]
+
+
+def test_spread_sample_takes_the_far_ends_of_a_line_first():
+    line = np.c_[np.linspace(0.0, 1.0, 11), np.zeros(11), np.zeros(11)]
+    assert set(problems.spread_sample(line, 2)) == {0, 10}
+    assert sorted(problems.spread_sample(line, 3)) == [0, 5, 10]
+
+
+def _tip_track(rest, targets, frames, weight=1.0):
+    tip = np.flatnonzero(rest[:, 0] > 3.0)
+    return problems.HandleTrack("Tip", tip, weight, np.asarray(frames), np.asarray(targets))
+
+
+def test_handle_rows_are_the_mean_of_the_handle_vertices_rows(bar):
+    body, rest = bar
+    track = _tip_track(rest, rest[rest[:, 0] > 3.0].mean(axis=0)[None].repeat(2, 0), [3, 7])
+    settings = problems.SpaceTimeSettings(h=1.0 / 24.0)
+    setup = problems.spacetime_problem(body, rest, list(range(1, 11)), [track], settings=settings)
+    handles = setup.problem.handles
+    rows = body.surface_basis.reshape(len(rest), 3, -1)[track.vertices].mean(axis=0)
+    assert setup.track_slices == [slice(0, 2)]
+    np.testing.assert_allclose(handles.rows, np.repeat(rows[None], 2, axis=0), rtol=1e-12)
+    np.testing.assert_array_equal(handles.frames, [2, 6])           # counted from frame 1
+    np.testing.assert_allclose(setup.rest_centroids[0], rest[track.vertices].mean(axis=0))
+    assert setup.problem.fix_start and setup.problem.keyframes is None
+
+
+def test_nothing_to_solve_for_is_refused(bar):
+    body, rest = bar
+    with pytest.raises(ValueError, match="nothing to solve for"):
+        problems.spacetime_problem(body, rest, [1, 2, 3, 4],
+                                   settings=problems.SpaceTimeSettings(h=1.0 / 24.0))
+
+
+def test_a_handle_keyed_where_the_model_bends_the_tip_is_met(bar):
+    body, rest = bar
+    z = np.zeros(body.deformer.num_coords)
+    z[0] = 0.5 / np.abs(body.surface_mode(0)).max()                 # tip about 0.5 m down
+    bent = body.surface_positions(rest, z)
+    tip = rest[:, 0] > 3.0
+    target = bent[tip].mean(axis=0)
+    settings = problems.SpaceTimeSettings(h=1.0 / 24.0, damping_mass=0.5)
+    setup = problems.spacetime_problem(body, rest, list(range(1, 25)),
+                                       [_tip_track(rest, target[None], [24])], settings=settings)
+    result = spacetime.solve(setup.problem, iterations=30)
+    reached = body.surface_positions(rest, result.inputs[-1])[tip].mean(axis=0)
+    miss = np.linalg.norm(reached - target)
+    print(f"tip target moved {np.linalg.norm(target - rest[tip].mean(axis=0)):.3f} m, miss {miss:.2e} m")
+    assert miss < 2e-3
+
+
+def test_a_take_is_followed_softly_and_frees_the_start(bar):
+    body, rest = bar
+    frames = list(range(1, 9))
+    take = (frames, np.repeat(rest[None], len(frames), axis=0))
+    setup = problems.spacetime_problem(body, rest, frames, take=take,
+                                       settings=problems.SpaceTimeSettings(h=1.0 / 24.0))
+    assert not setup.problem.fix_start and setup.problem.handles is None
+    np.testing.assert_array_equal(setup.problem.keyframes.frames, np.arange(8))
+    np.testing.assert_allclose(setup.problem.keyframes.poses, 0.0, atol=1e-9)   # rest is z = 0
+
+
+def test_poses_the_modes_made_come_back_as_their_modal_coordinates(bar):
+    body, rest = bar
+    Z = np.zeros((3, body.linear_modes.vectors.shape[1]))
+    Z[:, 0] = [0.0, 0.002, 0.004]
+    Z[2, 2] = 0.003
+    made = np.array([rest + body.surface(body.reconstruction.reconstruct(body.modal_rs @ z))
+                     for z in Z])
+    fitted = poses.poses_to_modal(body, made)
+    print(f"largest error {np.abs(fitted - Z).max() / np.abs(Z).max():.2%} of the largest coordinate")
+    # Not exact: the reconstruction of linear RS targets is a least-squares fit (0.5 % here).
+    np.testing.assert_allclose(fitted, Z, atol=1e-2 * np.abs(Z).max())
+
+
+def test_a_spin_past_a_half_turn_stays_continuous(bar):
+    """Each pose's rotation branch is chained to the previous one's: a turn of the whole bar in
+    steps of 40 deg up to 400 deg gives modal coordinates that move by about as much each step
+    (a lost branch would jump by a full turn's worth)."""
+    body, rest = bar
+    centre = rest.mean(axis=0)
+    angles = np.radians(np.arange(0, 401, 40))
+    spin = [centre + (rest - centre) @ rs.exp_rotation(np.array([[a, 0.0, 0.0]]))[0].T
+            for a in angles]
+    fitted = poses.poses_to_modal(body, np.array(spin))
+    steps = np.linalg.norm(np.diff(fitted, axis=0), axis=1)
+    print(np.round(steps, 4))
+    assert steps.max() < 1.5 * np.median(steps)
+
+
+def test_an_interpolation_gives_back_its_end_poses_and_holds_the_pins(bar):
+    body, rest = bar
+    z = np.zeros(body.deformer.num_coords)
+    z[1] = 0.3 / np.abs(body.surface_mode(1)).max()
+    a, b = rest, body.surface_positions(rest, z)
+    assert poses.keeps_pins(body, rest, a, b)
+    out, inverted = poses.interpolate_poses(body, rest, a, b, [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(out[0], a, atol=1e-9)
+    np.testing.assert_allclose(out[2], b, atol=1e-9)
+    pinned = body.displacement_embedding[:, body.pinned_nodes].getnnz(axis=1) > 0
+    np.testing.assert_allclose(out[1][pinned], rest[pinned], atol=1e-9)
+    assert inverted == 0
