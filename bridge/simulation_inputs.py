@@ -4,6 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import contact, dynamics, fem, inversion, materials
+from ..solver.frames import FrameMotion
 from . import armature, bake, bodies, colliders, jobs, rs_tools, scene, spacetime_inputs
 from .jobs import Cancelled
 from .scene import InputError
@@ -128,7 +129,7 @@ def gather(obj, blender_scene):
                              "its keyed motion has something to carry")
         rotations, translations = motion
         times = (np.array(frames) - frames[0]) * h
-        frame_motion = dynamics.FrameMotion(times, rotations, translations)
+        frame_motion = FrameMotion(times, rotations, translations)
     else:
         # A still object: simulate in its own space, with gravity turned into it.
         rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())

@@ -138,12 +138,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
-from . import inversion, reduced, rs
+from . import frames, inversion, newton, rs
 
-ARMIJO = 1e-4
-MAX_HALVINGS = 30
 MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
 HOLD_MU = 1e-6             # Tikhonov weight of the held deformation (``_holding_deformation``)
 HOLD_ROUNDS = 3            # fits of the held deformation, each holding the samples the last pushed in
@@ -171,7 +169,6 @@ class InversionError(RuntimeError):
                        f"stiffer, add substeps or damping, or use fewer modes")
         super().__init__(f"At t = {time:.4g} s (frame {frame} after the start): {self.detail}")
 STABILISED_CONTACT = True  # Newmark leaves contact forces out of its carried acceleration
-_LEVI_CIVITA = -np.transpose(rs.skew(np.eye(3)), (1, 2, 0))           # eps_ijk (3, 3, 3)
 
 
 class ContactError(ValueError):
@@ -192,31 +189,6 @@ class SimulationCancelled(Exception):
     def __init__(self, trajectory):
         super().__init__("simulation cancelled")
         self.trajectory = trajectory
-
-
-class FrameMotion:
-    """Prescribed rigid motion of a body frame, sampled at increasing times.
-
-    times (F,) [s]; rotations (F, 3, 3) body-to-world; translations (F, 3) [m]. Calling it at t
-    returns (R (3, 3), c (3,)): slerp and linear interpolation between samples, held constant
-    outside them (like Blender's constant F-curve extrapolation).
-    """
-
-    def __init__(self, times, rotations, translations):
-        self.times = np.asarray(times, dtype=np.float64).reshape(-1)
-        self.rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
-        self.translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-        if len(self.times) == 1:
-            self._slerp = None
-        else:
-            self._slerp = Slerp(self.times, Rotation.from_matrix(self.rotations))
-
-    def __call__(self, t):
-        t = float(np.clip(t, self.times[0], self.times[-1]))
-        c = np.array([np.interp(t, self.times, self.translations[:, i]) for i in range(3)])
-        if self._slerp is None:
-            return self.rotations[0].copy(), c
-        return self._slerp([t]).as_matrix()[0], c
 
 
 @dataclass
@@ -247,62 +219,8 @@ class Trajectory:
         return body @ np.swapaxes(self.rotations, 1, 2) + self.translations[:, None, :]
 
 
-def _best_rotation(K):
-    """argmax over rotations of tr(R^T K) for K (3, 3), and that maximum."""
-    U, sv, Vt = np.linalg.svd(K)
-    sign = 1.0 if np.linalg.det(U @ Vt) >= 0.0 else -1.0
-    R = (U * np.array([1.0, 1.0, sign])) @ Vt
-    return R, sv[0] + sv[1] + sign * sv[2]
-
-
-class _QuadraticInertia:
-    """kappa/2 q^T M_B q - b.q: fixed or prescribed frame (the inertia and mass damping)."""
-
-    def __init__(self, kappa, mass_matrix, b):
-        self.hess = kappa * mass_matrix
-        self.b = b
-
-    def evaluate(self, q, order):
-        grad = self.hess @ q - self.b
-        value = 0.5 * float((grad - self.b) @ q)
-        return value, grad, (self.hess if order >= 2 else None)
-
-
-class _FreeInertia:
-    """Free body: inertia with the frame (R, c) minimised in closed form (module docstring).
-
-    value(q) = scale/2 (q^T M_c q + 2 a.q - 2 sigma(K0 + Kq q)) + 1/2 q^T D q + e.q,
-    sigma(K) = max_R tr(R^T K). scale = 1/dt^2 (implicit Euler) or 4/dt^2 (Newmark); Kq (9, rB);
-    M_c the centred mass matrix of B; D (rB, rB) and e (rB,) the mass-damping terms.
-    """
-
-    def __init__(self, scale, centred_mass, damping_matrix, damping_linear, a, K0, Kq):
-        self.scale, self.K0, self.Kq = scale, K0, Kq
-        self.quad = scale * centred_mass + damping_matrix
-        self.lin = scale * a + damping_linear
-
-    def rotation(self, q):
-        return _best_rotation(self.K0 + (self.Kq @ q).reshape(3, 3))
-
-    def evaluate(self, q, order):
-        R, sigma = self.rotation(q)
-        Mq = self.quad @ q
-        value = 0.5 * float(Mq @ q) + float(self.lin @ q) - self.scale * sigma
-        if order < 1:
-            return value, None, None
-        grad = Mq + self.lin - self.scale * (R.reshape(-1) @ self.Kq)
-        return value, grad, (self.quad if order >= 2 else None)
-
-
-
-def _axial(N):
-    """(..., 3) axial vectors of (..., 3, 3): tr(skew(w) N) = -w . axial(N)."""
-    return np.stack([N[..., 2, 1] - N[..., 1, 2], N[..., 0, 2] - N[..., 2, 0],
-                     N[..., 1, 0] - N[..., 0, 1]], axis=-1)
-
-
 class _ContactInertia:
-    """A pinned body's step model (``_QuadraticInertia``) plus its contact energy in the known
+    """A pinned body's step model (``frames.QuadraticInertia``) plus its contact energy in the known
     frame (R, c) of the step's end: x_p = R (P_p - origin + rows_p q) + c, so the gradient
     adds rows^T R^T g and the Gauss-Newton Hessian rows^T R^T H R rows (``_contact_terms``)."""
 
@@ -317,221 +235,6 @@ class _ContactInertia:
             return np.inf, None, None
         return (value + extra, grad + g if order >= 1 else None,
                 hess + H if order >= 2 else None)
-
-
-class _FramedInertia:
-    """Free body with its frame explicit (used with contact): in the unknowns (q, phi, u),
-    R = exp(skew(phi)) R_ref, c = c_ref + u, linearised at phi = u = 0 (the current iterate),
-
-        E = scale/2 sum_k m_k |R Y_k(q) + c - x_hat_k|^2 + 1/2 q^T D q + e.q,   Y = Xb + B q.
-
-    Expanded with the mass moments (R orthogonal, constants dropped):
-
-        E = scale (1/2 q^T M_B q + a.q + M/2 |c|^2 - c.X + tr(R^T W)) + 1/2 q^T D q + e.q,
-        W(q, c) = c m(q)^T - G(q),  m(q) = sum m Y = m_X + F_B q,  G(q) = sum m x_hat Y^T = G0 + Gq q,
-
-    a = B^T M Xb, X = sum m x_hat (3,), M the total mass; for x_hat = A Xb + (Z : B) + d
-    (``_Field``): X = A m_X + Z : F_B + M d, G0 = A S0 + Z : H0 + d m_X^T,
-    Gq = A H0^T + Z : H1 + d F_B (contractions as in ``_newmark_free_inertia``, with H1 not
-    centred). With tr(exp(-skew(phi)) N) = tr N + phi.axial(N) + 1/2 phi^T (sym N - tr N I) phi
-    + O(phi^3) for N = W R_ref^T (``_axial``), the gradient at phi = u = 0 is
-
-        q:   scale (M_B q + a + F_B^T R^T c - Gq^T vec R) + D q + e
-        phi: scale axial(N)
-        u:   scale (M c + R m(q) - X)           (= scale sum m (x - x_hat))
-
-    and the Hessian blocks (N linear in q and c):
-
-        qq: scale M_B + D;   qu: scale F_B^T R^T;   uu: scale M I;
-        phi phi: scale (sym N - tr N I);   phi u: scale skew(R m(q));
-        phi q_b: scale axial((c F_B[:, b]^T - Gq[:, :, b]) R^T).
-
-    Gauss-Newton (scale sum m (dx/dz)^T dx/dz, always PSD, x = R Y + c) differs only in
-    phi phi: scale R (tr S I - S) R^T with S = sum m Y Y^T = S0 + H0 q + (H0 q)^T + q^T H1 q,
-    and phi q: scale R sum m skew(Y_k) B_k. Its unscaled form is the mass metric of a step
-    (``mass``), which measures how far a step moves the body. Everything is contracted from
-    the moments (O(rB^2) per evaluation, no per-vertex work).
-    """
-
-    def __init__(self, sim, scale, target, damping_matrix, damping_linear):
-        self.sim, self.scale = sim, scale
-        self.D, self.e = damping_matrix, damping_linear
-        A, Z, d = target.A, target.Z, target.d
-        mX, FB = sim.first_moment_X, sim.first_moment_B
-        self.X = A @ mX + np.einsum("ija,ja->i", Z, FB) + sim.total_mass * d
-        self.G0 = A @ sim.S0 + np.einsum("ija,jla->il", Z, sim.H0) + np.outer(d, mX)
-        self.Gq = (np.einsum("ij,ljb->ilb", A, sim.H0) + np.einsum("ija,jlab->ilb", Z, sim.H1)
-                   + d[:, None, None] * FB[None])
-
-    @staticmethod
-    def mass_metric(sim, q, R):
-        """sum_k m_k (dx_k/dz)^T dx_k/dz (rB + 6, rB + 6) for z = (q, phi, u) (class docstring)."""
-        rB, FB = sim.basis_size, sim.first_moment_B
-        mq = sim.first_moment_X + FB @ q
-        H0q = sim.H0 @ q
-        P = sim.H0 + sim.H1 @ q                           # [j, m, a] = sum m B_k[j, a] Y_k[m]
-        S = sim.S0 + H0q + H0q.T + np.einsum("a,ijab,b->ij", q, sim.H1, q)
-        mass = np.zeros((rB + 6, rB + 6))
-        mass[:rB, :rB] = sim.mass_matrix
-        mass[:rB, rB + 3:] = FB.T @ R.T
-        mass[:rB, rB:rB + 3] = (R @ -np.einsum("ijm,jma->ia", _LEVI_CIVITA, P)).T
-        mass[rB:rB + 3, rB:rB + 3] = R @ (np.trace(S) * np.eye(3) - S) @ R.T
-        mass[rB:rB + 3, rB + 3:] = rs.skew(R @ mq)
-        mass[rB + 3:, rB + 3:] = sim.total_mass * np.eye(3)
-        return np.triu(mass) + np.triu(mass, 1).T
-
-    def value(self, q, R, c):
-        sim = self.sim
-        W = np.outer(c, sim.first_moment_X + sim.first_moment_B @ q) - self.G0 - self.Gq @ q
-        inertia = (0.5 * q @ (sim.mass_matrix @ q) + sim._trace_H0 @ q
-                   + 0.5 * sim.total_mass * c @ c - c @ self.X + np.sum(R * W))
-        return float(self.scale * inertia + 0.5 * q @ (self.D @ q) + self.e @ q)
-
-    def derivatives(self, q, R, c):
-        """(grad (rB+6,), exact Hessian, Gauss-Newton Hessian (rB+6, rB+6), unscaled mass
-        metric (rB+6, rB+6)) in (q, phi, u) at phi = u = 0 (class docstring)."""
-        sim, k = self.sim, self.scale
-        rB, FB, M_B = sim.basis_size, sim.first_moment_B, sim.mass_matrix
-        mq = sim.first_moment_X + FB @ q
-        N = (np.outer(c, mq) - self.G0 - self.Gq @ q) @ R.T
-        grad = np.concatenate([
-            k * (M_B @ q + sim._trace_H0 + FB.T @ (R.T @ c) - self.Gq.reshape(9, -1).T @ R.ravel())
-            + self.D @ q + self.e,
-            k * _axial(N),
-            k * (sim.total_mass * c + R @ mq - self.X)])
-        mass = self.mass_metric(sim, q, R)
-        gauss_newton = k * mass
-        gauss_newton[:rB, :rB] += self.D
-        exact = gauss_newton.copy()
-        dN = np.einsum("i,lb->ilb", c, FB) - self.Gq                          # dW/dq_b
-        exact[rB:rB + 3, :rB] = k * _axial(np.einsum("ilb,jl->bij", dN, R)).T
-        exact[:rB, rB:rB + 3] = exact[rB:rB + 3, :rB].T
-        exact[rB:rB + 3, rB:rB + 3] = k * (0.5 * (N + N.T) - np.trace(N) * np.eye(3))
-        return grad, exact, gauss_newton, mass
-
-
-class _Field:
-    """A world-space field over the nodes, F_k = A Xb_k + sum_ij e_i (B_k[j] . Z[i, j]) + d.
-
-    A (3, 3), Z (3, 3, rB), d (3,); B_k[j] (rB,) is row 3k + j of the basis. Positions
-    R (Xb + B q) + c are ``position(R, q, c)``; Newmark's velocities and accelerations are
-    linear combinations of such fields, so they stay in this form (module docstring).
-    """
-
-    __slots__ = ("A", "Z", "d")
-
-    def __init__(self, A, Z, d):
-        self.A, self.Z, self.d = A, Z, d
-
-    @classmethod
-    def position(cls, R, q, c):
-        return cls(np.array(R, dtype=np.float64), R[:, :, None] * q, np.array(c, dtype=np.float64))
-
-    @classmethod
-    def constant(cls, d, basis_size):
-        return cls(np.zeros((3, 3)), np.zeros((3, 3, basis_size)), np.asarray(d, dtype=np.float64))
-
-    def __add__(self, other):
-        return _Field(self.A + other.A, self.Z + other.Z, self.d + other.d)
-
-    def __sub__(self, other):
-        return _Field(self.A - other.A, self.Z - other.Z, self.d - other.d)
-
-    def __rmul__(self, k):
-        return _Field(k * self.A, k * self.Z, k * self.d)
-
-
-_SERIES_BELOW = 0.1     # rad: below, the Rodrigues coefficients use their series
-_SKEW_UNITS = rs.skew(np.eye(3))                                        # (3, 3, 3): E_i
-_STRAIN_COLUMNS = rs.STRAIN_BASIS.reshape(6, 9).T                       # (9, 6): vec(B_k)
-
-
-def _rodrigues_derivatives(t2):
-    """(a, b, c, d, e, f) (n,) of R = I + aK + bK^2: c = a'/t, d = b'/t, e = c'/t, f = d'/t.
-
-    t = |omega|, t2 = t^2; three-term series below 0.1 rad (truncation < 1e-11 relative).
-    """
-    small = t2 < _SERIES_BELOW ** 2
-    t2s = np.where(small, 1.0, t2)
-    t = np.sqrt(t2s)
-    a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2s
-    c = (np.cos(t) - a) / t2s
-    d = (a - 2.0 * b) / t2s
-    return (np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, a),
-            np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, b),
-            np.where(small, -1.0 / 3.0 + t2 / 30.0 - t2 * t2 / 840.0, c),
-            np.where(small, -1.0 / 12.0 + t2 / 180.0 - t2 * t2 / 6720.0, d),
-            np.where(small, 1.0 / 15.0 - t2 / 210.0 + t2 * t2 / 7560.0, (-a - 3.0 * c) / t2s),
-            np.where(small, 1.0 / 90.0 - t2 / 1680.0 + t2 * t2 / 75600.0, (c - 4.0 * d) / t2s))
-
-
-class _GeometricStiffness:
-    """sum_i g_i d^2 q_i / ds^2 (m, m) of a ReducedRS for a fixed vector g (rB,).
-
-    The Gauss-Newton Hessian J^T H_q J misses this term; with it the step is a true Newton
-    step and converges quadratically where the RS map curves (large rotations under load).
-    ReducedRS's q is linear in s plus sum_C w_e P_e vec(b_e(y_e)), y_e = U_e s, so the term is
-    sum_e U_e^T G_e U_e with G_e (9, 9) the Hessian of <lam_e, b_e(y)>, lam_e = w_e P_e^T g
-    (3, 3), b = R(omega) S - I, S = I + eps. It has no eps-eps block;
-    omega-eps: <lam B_k, dR_i> = <B_k, lam^T dR_i>, with dR_i = a E_i + b (omega e_i^T +
-    e_i omega^T - 2 omega_i I) + omega_i (c K + d K^2);
-    omega-omega: the Hessian of <L, R(omega)> = tr L + a p + b r, L = lam S, p = omega.vee(L),
-    r = omega^T A omega, A = sym(L) - tr(L) I, i.e.
-    (c p + d r) I + (e p + f r) omega omega^T + c (omega v^T + v omega^T)
-    + 2 d (omega u^T + u omega^T) + 2 b A, v = vee(L), u = A omega.
-    Only a Hessian model: the gradient always comes from ``q_jacobian``.
-    """
-
-    def __init__(self, deformer):
-        weighted = deformer.cubature_weights[:, None, None] * deformer.projections  # (C, rB, 9)
-        self.weighted = np.ascontiguousarray(weighted.transpose(1, 0, 2).reshape(
-            deformer.basis_size, -1))                                          # (rB, 9C)
-        self.U = deformer.modal_rs_cubature                                    # (C, 9, m)
-        self.flat = self.U.reshape(-1, self.U.shape[2])
-
-    def __call__(self, s, g):
-        y = self.U @ s
-        n = len(y)
-        omega = y[:, :3]
-        a, b, c, d, e, f = _rodrigues_derivatives(np.einsum("ci,ci->c", omega, omega))
-        K = rs.skew(omega)
-        K2 = K @ K
-        S = (y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + np.eye(3)
-        lam = (g @ self.weighted).reshape(n, 3, 3)
-        G = np.zeros((n, 9, 9))
-        G[:, :3, :3] = self._omega_omega(omega, lam @ S, a, b, c, d, e, f)
-        G[:, :3, 3:] = self._omega_eps(omega, K, K2, lam, a, b, c, d)
-        G[:, 3:, :3] = np.swapaxes(G[:, :3, 3:], 1, 2)
-        H = self.flat.T @ (G @ self.U).reshape(-1, self.U.shape[2])
-        return 0.5 * (H + H.T)
-
-    @staticmethod
-    def _omega_omega(omega, L, a, b, c, d, e, f):
-        """Hessian of <L, R(omega)> (n, 3, 3) (class docstring)."""
-        flat = L.reshape(-1, 9)
-        v = flat[:, [7, 2, 3]] - flat[:, [5, 6, 1]]                          # vee(L)
-        trace = flat[:, 0] + flat[:, 4] + flat[:, 8]
-        A = 0.5 * (L + np.swapaxes(L, 1, 2)) - trace[:, None, None] * np.eye(3)
-        u = np.einsum("nij,nj->ni", A, omega)
-        p, r = np.einsum("ni,ni->n", omega, v), np.einsum("ni,ni->n", omega, u)
-        cross = c[:, None, None] * v[:, :, None] + 2.0 * d[:, None, None] * u[:, :, None]
-        cross = cross * omega[:, None, :]
-        return ((c * p + d * r)[:, None, None] * np.eye(3) + cross + np.swapaxes(cross, 1, 2)
-                + (e * p + f * r)[:, None, None] * omega[:, :, None] * omega[:, None, :]
-                + 2.0 * b[:, None, None] * A)
-
-    @staticmethod
-    def _omega_eps(omega, K, K2, lam, a, b, c, d):
-        """<lam B_k, dR_i> (n, 3, 6) through lam^T dR_i projected on the strain basis."""
-        n = len(omega)
-        eye = np.eye(3)
-        dR = (a[:, None, None, None] * _SKEW_UNITS
-              + b[:, None, None, None] * (omega[:, None, :, None] * eye[None, :, None, :]
-                                          + eye[None, :, :, None] * omega[:, None, None, :]
-                                          - 2.0 * omega[:, :, None, None] * eye)
-              + omega[:, :, None, None] * (c[:, None, None] * K + d[:, None, None] * K2)[:, None])
-        M = np.swapaxes(lam, 1, 2)[:, None] @ dR                                # (n, 3, 3, 3)
-        return M.reshape(n, 3, 9) @ _STRAIN_COLUMNS
 
 
 INTEGRATORS = ("newmark", "implicit_euler")
@@ -651,8 +354,6 @@ class Simulation:
         # (beta/dt) K0 for Newmark, (beta/(2 dt)) K0 for implicit Euler, as 1/2 ds^T D ds.
         scale = (2.0 if self.newmark else 1.0) * self.beta / self.dt
         self._damping = scale * potential.rest_hessian                             # (m, m)
-        self._geometric = (_GeometricStiffness(deformer)
-                           if isinstance(deformer, reduced.ReducedRS) else None)
         self.time = float(start_time)
         self._start_time = self.time
         self._volumes = (None if tets is None else
@@ -663,40 +364,19 @@ class Simulation:
     # -- precomputation -----------------------------------------------------------------------
 
     def _precompute(self, X, masses):
-        """Mass moments of Xb and B (O(N rB^2) once, so that no step touches the vertices)."""
+        """Mass moments of Xb and B (``frames.MassMoments``) and the Newton solver."""
         B = np.asarray(self.deformer.basis, dtype=np.float64)
-        n, rB = len(X), B.shape[1]
-        self.basis_size = rB
-        self.total_mass = float(masses.sum())
-        self.origin = masses @ X / self.total_mass if self.free else np.zeros(3)
-        Xb = X - self.origin
-        Bk = B.reshape(n, 3, rB)
-        self.mass_matrix = B.T @ (np.repeat(masses, 3)[:, None] * B)             # M_B (rB, rB)
-        self.mass_matrix = 0.5 * (self.mass_matrix + self.mass_matrix.T)
-        self.first_moment_B = np.einsum("k,kia->ia", masses, Bk)                # (3, rB)
-        self.first_moment_X = masses @ Xb                                       # (3,)
+        self.moments = frames.MassMoments(X, masses, B, self.free, self.frame_motion is not None)
+        self.basis_size, self.origin = self.moments.basis_size, self.moments.origin
         self.diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
-        self._step_tol2 = (self.tolerance * self.diagonal) ** 2 * self.total_mass
-        if not (self.free or self.frame_motion is not None):
-            return
-        mB = masses[:, None, None] * Bk
-        self.S0 = Xb.T @ (masses[:, None] * Xb)                                  # (3, 3)
-        self.H0 = np.einsum("kia,kj->ija", mB, Xb)                              # (3, 3, rB)
-        self.H1 = np.empty((3, 3, rB, rB))               # [i, j] = sum m B_k[i]^T B_k[j]
-        for i in range(3):                               # nine GEMMs, no loop over vertices
-            for j in range(3):
-                self.H1[i, j] = mB[:, i, :].T @ Bk[:, j, :]
-        self._trace_H0 = np.einsum("iia->a", self.H0)                           # B^T M Xb
-        if self.free:
-            D = self.first_moment_B / self.total_mass                           # COM per unit q
-            self._com_per_q = D
-            self._H1c = self.H1 - self.total_mass * D[:, None, :, None] * D[None, :, None, :]
-            self._centred_mass = np.einsum("iiab->ab", self._H1c)
+        self._step_tol2 = (self.tolerance * self.diagonal) ** 2 * self.moments.total_mass
+        self.solver = newton.StepSolver(self.deformer, self.potential, self.moments.mass_matrix,
+                                        self._step_tol2, self.max_iterations)
 
     def _rest_frequencies(self):
         """(m,) rest frequencies [rad/s]: K0 w = omega^2 J0^T M_B J0 w at s = 0, ascending."""
         J0 = self.deformer.q_jacobian(np.zeros(self.num_coords))
-        mass = J0.T @ self.mass_matrix @ J0
+        mass = J0.T @ self.moments.mass_matrix @ J0
         values = scipy.linalg.eigh(self.potential.rest_hessian, 0.5 * (mass + mass.T),
                                    eigvals_only=True)
         return np.sqrt(np.maximum(values, 0.0))
@@ -761,11 +441,11 @@ class Simulation:
         else:
             R = np.asarray(self.rotation, float)
             R1, R2, _, c2 = self._frame_rates()
-            external = _Field.constant(self.gravity, self.basis_size)   # a free fall cancels
-            frame = _Field(R2, R2[:, :, None] * self.q + 2.0 * R1[:, :, None] * v_q, c2)
-            force = self._project(R, external - frame)
-        mass = J.T @ self.mass_matrix @ J
-        rhs = (J.T @ (force - self.mass_matrix @ (a_q + self.alpha * v_q))
+            external = frames.Field.constant(self.gravity, self.basis_size)   # a free fall cancels
+            frame = frames.Field(R2, R2[:, :, None] * self.q + 2.0 * R1[:, :, None] * v_q, c2)
+            force = self.moments.project(R, external - frame)
+        mass = J.T @ self.moments.mass_matrix @ J
+        rhs = (J.T @ (force - self.moments.mass_matrix @ (a_q + self.alpha * v_q))
                - self.potential.evaluate(self.coords, 1)[1]
                - self.beta * (self.potential.rest_hessian @ self._v_s))
         self._a_s = scipy.linalg.solve(0.5 * (mass + mass.T), rhs, assume_a="pos")
@@ -825,18 +505,11 @@ class Simulation:
         if not (dR.any() or dc.any()):
             return
         J = self.deformer.q_jacobian(self.coords)
-        jump = self._project(R_n, _Field(dR, dR[:, :, None] * self.q, dc))
-        mass = J.T @ self.mass_matrix @ J
+        jump = self.moments.project(R_n, frames.Field(dR, dR[:, :, None] * self.q, dc))
+        mass = J.T @ self.moments.mass_matrix @ J
         self._impulse = -scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ jump, assume_a="pos")
         self._impulse_q = J @ self._impulse
         self._v_s = self._v_s + self._impulse
-
-    def _project(self, R, field):
-        """B^T M R^T F (rB,) for a world field F (contracted from the mass moments)."""
-        RA = R.T @ field.A
-        RZ = np.einsum("il,ija->lja", R, field.Z)
-        return (RA.reshape(-1) @ self.H0.reshape(9, -1) + np.einsum("ljab,ljb->a", self.H1, RZ)
-                + self.first_moment_B.T @ (R.T @ field.d))
 
     # -- one frame ----------------------------------------------------------------------------
 
@@ -965,20 +638,21 @@ class Simulation:
         else:
             R, c = self.rotation, self.translation
             model = self._newmark_fixed_inertia(v_q, a_q, damped_q)
-        damping = (self._damping, self.beta * (self.potential.rest_hessian @ v_damped))
+        damping = newton.Damping(self._damping, self.beta * (self.potential.rest_hessian @ v_damped),
+                                 self.coords)
         guess = self.coords + dt * self._v_s
         if self.contact is None:
-            s, q, iterations = self._minimise(model, guess, damping, self.max_iterations)
+            s, q, iterations = self.solver.minimise(model, guess, damping)
             if self.free:
                 R, c = self._best_frame(model, target, q)
         else:
             self._begin_contact(v_q)
             if self.free:
-                framed = _FramedInertia(self, 4.0 / dt ** 2, target,
+                framed = frames.FramedInertia(self.moments, 4.0 / dt ** 2, target,
                                         *self._mass_damping_terms(damped_q))
-                s, q, R, c, iterations = self._minimise_framed(
-                    framed, self._framed_guesses(model, target, guess), damping,
-                    self.max_iterations)
+                start = self._feasible_guess(self._framed_guesses(model, target, guess), True)
+                s, q, R, c, iterations = self.solver.minimise_framed(framed, start, damping,
+                                                                     self._framed_contact)
             else:
                 s, q, iterations = self._minimise_with_contact(model, R, c, guess, damping)
         if self.free:
@@ -1013,20 +687,20 @@ class Simulation:
             T = np.zeros((rB + 6, m + 6))
             T[:rB, :m] = J
             T[rB:, m:] = np.eye(6)
-            mass = T.T @ _FramedInertia.mass_metric(self, q, R) @ T
+            mass = T.T @ self.moments.mass_metric(q, R) @ T
             change = scipy.linalg.solve(0.5 * (mass + mass.T), T.T @ g, assume_a="pos")
             self._spin[1] = self._spin[1] + change[m:m + 3]
             self._drift[1] = self._drift[1] + change[m + 3:]
         else:
-            mass = J.T @ self.mass_matrix @ J
+            mass = J.T @ self.moments.mass_matrix @ J
             change = scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ g, assume_a="pos")
         self._a_s = self._a_s + change[:m]
 
     def _best_frame(self, model, target, q):
         """A free frame (R, c) for q: Procrustes rotation, centre of mass on x_hat's."""
         R, _ = model.rotation(q)
-        c = (np.einsum("ija,ja->i", target.Z, self._com_per_q) + target.d
-             - R @ (self._com_per_q @ q))
+        c = (np.einsum("ija,ja->i", target.Z, self.moments.com_per_q) + target.d
+             - R @ (self.moments.com_per_q @ q))
         return R, c
 
     def _framed_guesses(self, model, target, guess):
@@ -1041,8 +715,7 @@ class Simulation:
         from the first start guess outside the colliders (``_contact_guesses``)."""
         R, c = np.asarray(R, float), np.asarray(c, float)
         start, _, _ = self._feasible_guess(self._contact_guesses(guess, R, c), False)
-        return self._minimise(_ContactInertia(model, self, R, c), start, damping,
-                              self.max_iterations)
+        return self.solver.minimise(_ContactInertia(model, self, R, c), start, damping)
 
     def _contact_guesses(self, guess, R, c):
         """Start guesses (s, R, c) of a step with contact in the known end frame (R, c), made
@@ -1100,29 +773,29 @@ class Simulation:
         dt, q = self.dt, self.q
         R = np.asarray(self.rotation, float)
         R1, R2, c1, c2 = self._frame_rates()
-        x = _Field.position(R, q, np.asarray(self.translation, float))
-        v = _Field(R1, R1[:, :, None] * q + R[:, :, None] * v_q, c1)
-        a = _Field(R2, R2[:, :, None] * q + 2.0 * R1[:, :, None] * v_q + R[:, :, None] * a_q,
+        x = frames.Field.position(R, q, np.asarray(self.translation, float))
+        v = frames.Field(R1, R1[:, :, None] * q + R[:, :, None] * v_q, c1)
+        a = frames.Field(R2, R2[:, :, None] * q + 2.0 * R1[:, :, None] * v_q + R[:, :, None] * a_q,
                    c2 + self.gravity)
         return x + dt * v + (0.25 * dt * dt) * a
 
     def _mass_damping_terms(self, v_q):
         """Newmark's alpha/dt |q - q_n|^2_M - alpha (M v_q).q as (matrix, linear term)."""
-        M, k = self.mass_matrix, 2.0 * self.alpha / self.dt
+        M, k = self.moments.mass_matrix, 2.0 * self.alpha / self.dt
         return k * M, -(M @ (k * self.q + self.alpha * v_q))
 
     def _newmark_fixed_inertia(self, v_q, a_q, damped_q):
         """R = I, c = 0: 2/dt^2 |q - q_hat|^2_M - B^T M g.q + mass damping, with
         q_hat = q_n + dt v_q + dt^2/4 a_q."""
-        dt, M = self.dt, self.mass_matrix
+        dt, M = self.dt, self.moments.mass_matrix
         q_hat = self.q + dt * v_q + 0.25 * dt * dt * a_q
         _, linear = self._mass_damping_terms(damped_q)
         b = (4.0 / dt ** 2) * (M @ q_hat) - linear + self._fixed_load(self.time + dt)
-        return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, M, b)
+        return frames.QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, M, b)
 
     def _fixed_load(self, t):
         """(rB,) B^T M g plus the external force at time t [s] (fixed frame)."""
-        load = self.first_moment_B.T @ self.gravity
+        load = self.moments.first_moment_B.T @ self.gravity
         if self.external_force is not None:
             load = load + np.asarray(self.external_force(t), dtype=np.float64)
         return load
@@ -1130,20 +803,20 @@ class Simulation:
     def _newmark_moving_inertia(self, R, c, target, v_q):
         """Prescribed frame (R, c) at t_{n+1}: 2/dt^2 |Y(q) - R^T (x_hat - c)|^2_M + damping."""
         dt = self.dt
-        shifted = target - _Field.constant(c, self.basis_size)
+        shifted = target - frames.Field.constant(c, self.basis_size)
         _, linear = self._mass_damping_terms(v_q)
-        b = (4.0 / dt ** 2) * (self._project(R, shifted) - self._trace_H0) - linear
-        return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, self.mass_matrix, b)
+        b = (4.0 / dt ** 2) * (self.moments.project(R, shifted) - self.moments.trace_H0) - linear
+        return frames.QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, self.moments.mass_matrix, b)
 
     def _newmark_free_inertia(self, target, v_q):
         """Free body: K(q) = sum m (x_hat - x_hat_cm)(Y(q) - Y_cm)^T = K0 + Kq q from the
         field's (A, Z) and the mass moments; weight 4/dt^2."""
         A, Z = target.A, target.Z
-        K0 = A @ self.S0 + np.einsum("ija,jla->il", Z, self.H0)
-        Kq = np.einsum("ij,ljb->ilb", A, self.H0) + np.einsum("ija,jlab->ilb", Z, self._H1c)
+        K0 = A @ self.moments.S0 + np.einsum("ija,jla->il", Z, self.moments.H0)
+        Kq = np.einsum("ij,ljb->ilb", A, self.moments.H0) + np.einsum("ija,jlab->ilb", Z, self.moments.centred_H1)
         damping, linear = self._mass_damping_terms(v_q)
-        return _FreeInertia(4.0 / self.dt ** 2, self._centred_mass, damping, linear,
-                            self._trace_H0, K0, Kq.reshape(9, -1))
+        return frames.FreeInertia(4.0 / self.dt ** 2, self.moments.centred_mass, damping, linear,
+                            self.moments.trace_H0, K0, Kq.reshape(9, -1))
 
     # -- implicit Euler -------------------------------------------------------------------------
 
@@ -1158,9 +831,9 @@ class Simulation:
             R, c = self.rotation, self.translation
             model = self._fixed_inertia()
         predictor = 2.0 * self.coords - self.coords_prev
-        damping = (self._damping, np.zeros(self.num_coords))
+        damping = newton.Damping(self._damping, np.zeros(self.num_coords), self.coords)
         if self.contact is None:
-            s, q, iterations = self._minimise(model, predictor, damping, self.max_iterations)
+            s, q, iterations = self.solver.minimise(model, predictor, damping)
             if self.free:
                 R, _ = model.rotation(q)
                 c = self._free_translation(R, q)
@@ -1172,8 +845,9 @@ class Simulation:
                 guesses = [(predictor, R, self._free_translation(R, q_guess)),
                            (self.coords, np.asarray(self.rotation, float),
                             np.asarray(self.translation, float))]
-                s, q, R, c, iterations = self._minimise_framed(
-                    self._euler_framed_inertia(), guesses, damping, self.max_iterations)
+                s, q, R, c, iterations = self.solver.minimise_framed(
+                    self._euler_framed_inertia(), self._feasible_guess(guesses, True), damping,
+                    self._framed_contact)
             else:
                 s, q, iterations = self._minimise_with_contact(model, R, c, predictor, damping)
         self._advance(s, q, R, c)
@@ -1181,10 +855,10 @@ class Simulation:
 
     def _fixed_inertia(self):
         """R = I, c = 0: b = M_B (2 q_n - q_{n-1}) / dt^2 + B^T M g + alpha/dt M_B q_n."""
-        h, M = self.dt, self.mass_matrix
+        h, M = self.dt, self.moments.mass_matrix
         b = (M @ ((2.0 + self.alpha * h) * self.q - self.q_prev)) / (h * h)
         b += self._fixed_load(self.time + h)
-        return _QuadraticInertia(1.0 / (h * h) + self.alpha / h, M, b)
+        return frames.QuadraticInertia(1.0 / (h * h) + self.alpha / h, M, b)
 
     def _moving_inertia(self, R, c):
         """Prescribed frame (R, c) at t_{n+1}: target Y~ = R^T (x_hat - c) in the body frame.
@@ -1197,40 +871,40 @@ class Simulation:
         Cp = -R.T @ self.rotation_prev
         e = R.T @ (2.0 * self.translation - self.translation_prev + h * h * self.gravity - c)
         contract = lambda C, A: C.reshape(-1) @ A.reshape(9, -1)               # noqa: E731
-        rhs = (contract(Cn + Cp - np.eye(3), self.H0) + contract(Cn, self.H1 @ self.q)
-               + contract(Cp, self.H1 @ self.q_prev) + self.first_moment_B.T @ e)
-        b = rhs / (h * h) + (self.alpha / h) * (self.mass_matrix @ self.q)
-        return _QuadraticInertia(1.0 / (h * h) + self.alpha / h, self.mass_matrix, b)
+        rhs = (contract(Cn + Cp - np.eye(3), self.moments.H0) + contract(Cn, self.moments.H1 @ self.q)
+               + contract(Cp, self.moments.H1 @ self.q_prev) + self.moments.first_moment_B.T @ e)
+        b = rhs / (h * h) + (self.alpha / h) * (self.moments.mass_matrix @ self.q)
+        return frames.QuadraticInertia(1.0 / (h * h) + self.alpha / h, self.moments.mass_matrix, b)
 
     def _free_inertia(self):
         """Free body: K(q) = sum_p A_p P_p(q), A_n = 2 R_n, A_{n-1} = -R_{n-1}, with the
         centred cross moments P_p(q) = sum m Y'_p Y'(q)^T (linear in q)."""
         K0, Kq = np.zeros((3, 3)), np.zeros((3, 3, self.basis_size))
         for A, qp in ((2.0 * self.rotation, self.q), (-self.rotation_prev, self.q_prev)):
-            const = self.S0 + self.H0 @ qp                                     # (3, 3)
-            lin = np.swapaxes(self.H0, 0, 1) + qp @ self._H1c                  # (3, 3, rB)
+            const = self.moments.S0 + self.moments.H0 @ qp                                     # (3, 3)
+            lin = np.swapaxes(self.moments.H0, 0, 1) + qp @ self.moments.centred_H1                  # (3, 3, rB)
             K0 += A @ const
             Kq += np.einsum("ki,ijb->kjb", A, lin)
-        h, M = self.dt, self.mass_matrix
-        return _FreeInertia(1.0 / h ** 2, self._centred_mass, (self.alpha / h) * M,
-                            -(self.alpha / h) * (M @ self.q), self._trace_H0, K0,
+        h, M = self.dt, self.moments.mass_matrix
+        return frames.FreeInertia(1.0 / h ** 2, self.moments.centred_mass, (self.alpha / h) * M,
+                            -(self.alpha / h) * (M @ self.q), self.moments.trace_H0, K0,
                             Kq.reshape(9, -1))
 
     def _euler_framed_inertia(self):
         """Free body with contact: 1/(2 dt^2) |x - x_hat|^2_M, x_hat = 2 x_n - x_{n-1} + dt^2 g,
         with the frame explicit (``_FramedInertia``), plus mass damping alpha/(2 dt) |q - q_n|^2_M."""
-        h, M, rB = self.dt, self.mass_matrix, self.basis_size
-        target = (2.0 * _Field.position(np.asarray(self.rotation, float), self.q,
+        h, M, rB = self.dt, self.moments.mass_matrix, self.basis_size
+        target = (2.0 * frames.Field.position(np.asarray(self.rotation, float), self.q,
                                         np.asarray(self.translation, float))
-                  - _Field.position(np.asarray(self.rotation_prev, float), self.q_prev,
+                  - frames.Field.position(np.asarray(self.rotation_prev, float), self.q_prev,
                                     np.asarray(self.translation_prev, float))
-                  + _Field.constant(h * h * self.gravity, rB))
-        return _FramedInertia(self, 1.0 / h ** 2, target, (self.alpha / h) * M,
+                  + frames.Field.constant(h * h * self.gravity, rB))
+        return frames.FramedInertia(self.moments, 1.0 / h ** 2, target, (self.alpha / h) * M,
                               -(self.alpha / h) * (M @ self.q))
 
     def _free_translation(self, R, q):
         """c = centre of mass of x_hat - R (centre of mass of Y(q))."""
-        D = self._com_per_q
+        D = self.moments.com_per_q
         x_hat_cm = (2.0 * self.rotation @ (D @ self.q) - self.rotation_prev @ (D @ self.q_prev)
                     + 2.0 * self.translation - self.translation_prev
                     + self.dt * self.dt * self.gravity)
@@ -1331,6 +1005,9 @@ class Simulation:
         HJ = H[active] @ Jp
         return value, grad, Jp.reshape(-1, n).T @ HJ.reshape(-1, n)
 
+    def _framed_contact(self, q, R, c, order):
+        return self._contact_terms(q, R, c, order, True)
+
     def _feasible_guess(self, guesses, framed):
         """The first of (s, R, c) guesses whose samples are outside every collider."""
         for s, R, c in guesses:
@@ -1340,136 +1017,6 @@ class Simulation:
                 return s, R, c
         raise ContactError(f"at t = {self.time:.4g} s a collider or the keyed motion moved into "
                            "the body within one step; add substeps")
-
-    def _framed_objective(self, model, s, q, R, c, damping):
-        value = self._contact_terms(q, R, c, 0, True)[0]
-        if not np.isfinite(value):
-            return np.inf
-        ds = s - self.coords
-        matrix, force = damping
-        value += model.value(q, R, c) + self.potential.evaluate(s, 0)[0]
-        return value + float(ds @ (0.5 * (matrix @ ds) - force))
-
-    def _minimise_framed(self, model, guesses, damping, max_iterations):
-        """Newton / line search on (s, phi, u) of a free body with contact (``_FramedInertia``):
-        re-linearised at each iterate (R = exp(skew(phi)) R_it, c = c_it + u). As ``_minimise``:
-        Gauss-Newton first, the exact Hessian (inertia's and the RS map's curvature) on later
-        iterations that still move. Returns (s, q, R, c, iterations)."""
-        s, R, c = self._feasible_guess(guesses, True)
-        q = self.deformer.q(s)
-        f = self._framed_objective(model, s, q, R, c, damping)
-        iterations = 0
-        for iterations in range(1, max_iterations + 1):
-            grad, gauss_newton, exact, moved = self._framed_system(model, s, q, R, c, damping)
-            if not grad.any():
-                break
-            step = _newton_step(gauss_newton, grad)
-            small = moved(step) <= self._step_tol2
-            if not small and iterations > 1:
-                step = _newton_step(exact(), grad, step)
-            trial = self._framed_line_search(model, s, R, c, f, step, float(grad @ step), damping)
-            if trial is None:                      # no decrease possible: at round-off level
-                break
-            s, q, R, c, f = trial
-            if small:
-                break
-        return s, q, R, c, iterations
-
-    def _framed_system(self, model, s, q, R, c, damping):
-        """The step objective's derivatives in (s, phi, u) (m + 6,) at phi = u = 0: gradient,
-        Gauss-Newton Hessian, a callable giving the exact one (inertia and RS map curvature;
-        contact stays Gauss-Newton) and a callable giving a step's squared mass norm [kg m^2].
-        q = q(s) enters through T = diag(J, I6)."""
-        m, rB = self.num_coords, self.basis_size
-        T = np.zeros((rB + 6, m + 6))
-        T[:rB, :m] = self.deformer.q_jacobian(s)
-        T[rB:, m:] = np.eye(6)
-        g, exact, gauss_newton, mass = model.derivatives(q, R, c)
-        _, gc, Hc = self._contact_terms(q, R, c, 2, True)
-        g = g + gc
-        _, gV, HV = self.potential.evaluate(s, 2)
-        grad = T.T @ g
-        grad[:m] += gV + damping[0] @ (s - self.coords) - damping[1]
-        own = np.zeros((m + 6, m + 6))
-        own[:m, :m] = HV + damping[0]
-
-        def exact_hessian():
-            full = T.T @ (exact + Hc) @ T + own
-            if self._geometric is not None:
-                full[:m, :m] += self._geometric(s, g[:rB])
-            return full
-
-        def moved(step):
-            z = T @ step
-            return float(z @ (mass @ z))
-        return grad, T.T @ (gauss_newton + Hc) @ T + own, exact_hessian, moved
-
-    def _framed_line_search(self, model, s, R, c, f, step, slope, damping):
-        """Backtracking Armijo along (s + a ds, exp(a skew(dphi)) R, c + a du)."""
-        m, alpha = self.num_coords, 1.0
-        for _ in range(MAX_HALVINGS):
-            s_try = s + alpha * step[:m]
-            R_try = rs.exp_rotation(alpha * step[None, m:m + 3])[0] @ R
-            c_try = c + alpha * step[m + 3:]
-            q_try = self.deformer.q(s_try)
-            f_try = self._framed_objective(model, s_try, q_try, R_try, c_try, damping)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
-                return s_try, q_try, R_try, c_try, f_try
-            alpha *= 0.5
-        return None
-
-    # -- Newton with line search --------------------------------------------------------------
-
-    def _objective(self, model, s, q, damping):
-        ds = s - self.coords
-        matrix, force = damping
-        value = model.evaluate(q, 0)[0] + self.potential.evaluate(s, 0)[0]
-        return value + float(ds @ (0.5 * (matrix @ ds) - force))
-
-    def _minimise(self, model, s, damping, max_iterations):
-        """Newton / line search on s from the guess s; returns (s, q(s), iterations).
-
-        damping: (D (m, m), f (m,)), the stiffness-damping potential 1/2 ds^T D ds - f.ds in
-        ds = s - s_n (D = (beta/dt) K0 or 2 beta/dt K0, f = 0 or beta K0 v_s).
-        """
-        q = self.deformer.q(s)
-        f = self._objective(model, s, q, damping)
-        iterations = 0
-        for iterations in range(1, max_iterations + 1):
-            J = self.deformer.q_jacobian(s)
-            _, gq, Hq = model.evaluate(q, 2)
-            _, gV, HV = self.potential.evaluate(s, 2)
-            grad = J.T @ gq + gV + damping[0] @ (s - self.coords) - damping[1]
-            if not grad.any():
-                break
-            gauss_newton = J.T @ (Hq @ J) + HV + damping[0]
-            step = _newton_step(gauss_newton, grad)
-            moved = J @ step
-            small = float(moved @ (self.mass_matrix @ moved)) <= self._step_tol2
-            if not small and iterations > 1 and self._geometric is not None:
-                # Gauss-Newton was not enough: its convergence is only linear here, so take
-                # the true Newton step (kept Gauss-Newton if that Hessian is indefinite).
-                step = _newton_step(gauss_newton + self._geometric(s, gq), grad, step)
-            s_new, q_new, f_new = self._line_search(model, s, f, step, float(grad @ step),
-                                                    damping)
-            if s_new is None:                      # no decrease possible: at round-off level
-                break
-            s, q, f = s_new, q_new, f_new
-            if small:
-                break
-        return s, q, iterations
-
-    def _line_search(self, model, s, f, step, slope, damping):
-        """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None)."""
-        alpha = 1.0
-        for _ in range(MAX_HALVINGS):
-            s_try = s + alpha * step
-            q_try = self.deformer.q(s_try)
-            f_try = self._objective(model, s_try, q_try, damping)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
-                return s_try, q_try, f_try
-            alpha *= 0.5
-        return None, None, None
 
     # -- statics, runs, energy ----------------------------------------------------------------
 
@@ -1484,13 +1031,14 @@ class Simulation:
         """
         if self.free:
             raise ValueError("a free body has no static equilibrium under gravity")
-        b = self.first_moment_B.T @ (self.rotation.T @ self.gravity)
+        b = self.moments.first_moment_B.T @ (self.rotation.T @ self.gravity)
         if self.external_force is not None:
             b = b + np.asarray(self.external_force(self.time), dtype=np.float64)
-        model = _QuadraticInertia(0.0, self.mass_matrix, b)
+        model = frames.QuadraticInertia(0.0, self.moments.mass_matrix, b)
         guess = np.zeros(self.num_coords) if s is None else np.asarray(s, dtype=np.float64)
-        no_damping = (np.zeros((self.num_coords, self.num_coords)), np.zeros(self.num_coords))
-        s, q, self.iterations = self._minimise(model, guess, no_damping, max_iterations)
+        no_damping = newton.Damping(np.zeros((self.num_coords, self.num_coords)),
+                                    np.zeros(self.num_coords), self.coords)
+        s, q, self.iterations = self.solver.minimise(model, guess, no_damping, max_iterations)
         self.coords, self.coords_prev, self.q, self.q_prev = s, s.copy(), q, q.copy()
         self.rotation_prev, self.translation_prev = self.rotation, self.translation
         if self.newmark:
@@ -1539,75 +1087,28 @@ class Simulation:
         if self.newmark and (self.free or self.frame_motion is not None):
             R, v_q = np.asarray(self.rotation, float), self._body_rates()[0]
             R1, _, c1, _ = self._frame_rates()
-            velocity = _Field(R1, R1[:, :, None] * self.q + R[:, :, None] * v_q, c1)
-            kinetic = 0.5 * self._field_mass_norm2(velocity)
+            velocity = frames.Field(R1, R1[:, :, None] * self.q + R[:, :, None] * v_q, c1)
+            kinetic = 0.5 * self.moments.field_norm2(velocity)
         elif self.newmark:
             v_q = self._body_rates()[0]
-            kinetic = 0.5 * float(v_q @ (self.mass_matrix @ v_q))
+            kinetic = 0.5 * float(v_q @ (self.moments.mass_matrix @ v_q))
         elif self.free or self.frame_motion is not None:
             dR = self.rotation - self.rotation_prev
             terms = [(dR, None), (self.rotation, self.q), (-self.rotation_prev, self.q_prev)]
-            kinetic = 0.5 * self._mass_norm2(terms, self.translation - self.translation_prev) / h2
+            kinetic = 0.5 * self.moments.mass_norm2(terms, self.translation - self.translation_prev) / h2
         else:
             dq = self.q - self.q_prev
-            kinetic = 0.5 * float(dq @ (self.mass_matrix @ dq)) / h2
-        moment = self.rotation @ (self.first_moment_B @ self.q)
-        moment += (self.rotation - np.eye(3)) @ self.first_moment_X
-        moment += self.total_mass * (self.translation - (self.origin if self.free else 0.0))
+            kinetic = 0.5 * float(dq @ (self.moments.mass_matrix @ dq)) / h2
+        moment = self.rotation @ (self.moments.first_moment_B @ self.q)
+        moment += (self.rotation - np.eye(3)) @ self.moments.first_moment_X
+        moment += self.moments.total_mass * (self.translation - (self.origin if self.free else 0.0))
         gravity = -float(self.gravity @ moment)
         elastic = self.potential.evaluate(self.coords, 0)[0]
         return dict(kinetic=kinetic, elastic=elastic, gravity=gravity,
                     total=kinetic + elastic + gravity)
-
-    def _field_mass_norm2(self, field):
-        """sum_k m_k |F_k|^2 for a ``_Field`` F, from the mass moments."""
-        A, Z, d = field.A, field.Z, field.d
-        return float(np.sum(A * (A @ self.S0)) + np.einsum("ija,jlab,ilb->", Z, self.H1, Z)
-                     + 2.0 * np.einsum("il,jla,ija->", A, self.H0, Z)
-                     + 2.0 * d @ (A @ self.first_moment_X)
-                     + 2.0 * np.einsum("i,ja,ija->", d, self.first_moment_B, Z)
-                     + self.total_mass * d @ d)
-
-    def _cross_moment(self, qa, qb):
-        """sum_k m_k Z_a,k Z_b,k^T (3, 3), Z = Xb for q None, else B q."""
-        if qa is None and qb is None:
-            return self.S0
-        if qa is None:
-            return (self.H0 @ qb).T
-        if qb is None:
-            return self.H0 @ qa
-        return np.einsum("a,ijab,b->ij", qa, self.H1, qb)
-
-    def _mass_norm2(self, terms, d):
-        """sum_k m_k |sum_p L_p Z_p,k + d|^2 for terms [(L_p (3, 3), q_p or None)]."""
-        total = self.total_mass * float(d @ d)
-        for L, qa in terms:
-            first = self.first_moment_X if qa is None else self.first_moment_B @ qa
-            total += 2.0 * float(d @ (L @ first))
-            for L2, qb in terms:
-                total += float(np.sum(L * (L2 @ self._cross_moment(qb, qa))))
-        return total
-
 
 def _trapezoidal(rates, delta, dt):
     """Newmark average acceleration update of (velocity, acceleration) rates (2, ...) given the
     displacement delta over dt: a' = 4/dt^2 (delta - dt v) - a, v' = 2/dt delta - v."""
     v, a = rates
     return np.array([2.0 / dt * delta - v, 4.0 / dt ** 2 * (delta - dt * v) - a])
-
-
-def _newton_step(H, grad, fallback=None):
-    """-H^-1 grad by Cholesky. If H is not positive definite: ``fallback`` when given, else
-    H with a growing multiple of its diagonal added."""
-    H = 0.5 * (H + H.T)
-    scale = np.maximum(np.abs(np.diag(H)), 1e-300)
-    shift = 0.0
-    for _ in range(40):
-        try:
-            factor = scipy.linalg.cho_factor(H + shift * np.diag(scale), check_finite=False)
-            return -scipy.linalg.cho_solve(factor, grad, check_finite=False)
-        except np.linalg.LinAlgError:
-            if fallback is not None:
-                return fallback
-            shift = 1e-8 if shift == 0.0 else 10.0 * shift
-    raise np.linalg.LinAlgError("Newton system could not be regularised")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from solver import contact, dynamics, fem, materials, meshgen, modes, reduced, rs
+from solver import contact, dynamics, fem, frames, materials, meshgen, modes, reduced, rs
 
 G = 9.81
 GRAVITY = np.array([0.0, 0.0, -G])
@@ -242,7 +242,7 @@ def test_keyed_bar_stops_at_the_wall():
     wall = quad([[0.75, y_wall, -0.5], [1.4, y_wall, -0.5], [1.4, y_wall, 0.5],
                  [0.75, y_wall, 0.5]], thickness=thickness)
     assert wall.surface(0.0).face_normal[0] @ np.array([0.0, 1.0, 0.0]) < 0.0   # faces the bar
-    motion = dynamics.FrameMotion([0.0, 1.0], Rotation.from_rotvec(
+    motion = frames.FrameMotion([0.0, 1.0], Rotation.from_rotvec(
         [[0, 0, 0], [0, 0, np.radians(60.0)]]).as_matrix(), np.zeros((2, 3)))
     runs = {}
     for name, colliders in (("wall", [wall]), ("none", None)):
