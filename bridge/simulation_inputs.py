@@ -99,8 +99,7 @@ def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
     indices, points, rows, weights, masses = colliders.contact_samples(
         scene.base_vertices(obj), scene.base_triangles(obj), tools.surface_basis, total_mass,
         obj.rs_elastic.contact_samples)
-    return (contact.Contact(found, points, rows, weights, masses,
-                            integrator=obj.rs_elastic.integrator.lower()), indices)
+    return contact.Contact(found, points, rows, weights, masses), indices
 
 
 def gather(obj, blender_scene):

@@ -312,3 +312,41 @@ class FramedInertia:
         exact[:rB, rB:rB + 3] = exact[rB:rB + 3, :rB].T
         exact[rB:rB + 3, rB:rB + 3] = k * (0.5 * (N + N.T) - np.trace(N) * np.eye(3))
         return grad, exact, gauss_newton, mass
+
+
+def fixed_inertia(moments, weight, q_hat, damping, load):
+    """Fixed frame: w/2 |q - q_hat|^2_{M_B} - load.q plus the mass damping k/2 q^T M_B q + e.q
+    (damping = (k, e)), as kappa/2 q^T M_B q - b.q: kappa = w + k, b = w M_B q_hat - e + load."""
+    k, linear = damping
+    b = weight * (moments.mass_matrix @ q_hat) - linear + load
+    return QuadraticInertia(weight + k, moments.mass_matrix, b)
+
+
+def keyed_inertia(moments, weight, target, R, c, damping):
+    """Keyed frame (R, c) at the step's end: w/2 |Y(q) - R^T (x_hat - c)|^2_M plus the mass
+    damping (k, e), the target a ``Field`` contracted with the moments."""
+    k, linear = damping
+    shifted = target - Field.constant(c, moments.basis_size)
+    b = weight * (moments.project(R, shifted) - moments.trace_H0) - linear
+    return QuadraticInertia(weight + k, moments.mass_matrix, b)
+
+
+def free_inertia(moments, weight, target, damping):
+    """Free frame, minimised in closed form (``FreeInertia``, weight w): K(q) =
+    sum m (x_hat - x_hat_cm)(Y(q) - Y_cm)^T = K0 + Kq q from the target's (A, Z) and the
+    moments; mass damping (k, e)."""
+    A, Z = target.A, target.Z
+    K0 = A @ moments.S0 + np.einsum("ija,jla->il", Z, moments.H0)
+    Kq = np.einsum("ij,ljb->ilb", A, moments.H0) + np.einsum("ija,jlab->ilb", Z, moments.centred_H1)
+    k, linear = damping
+    return FreeInertia(weight, moments.centred_mass, k * moments.mass_matrix, linear,
+                       moments.trace_H0, K0, Kq.reshape(9, -1))
+
+
+def best_frame(moments, model, target, q):
+    """A free frame (R, c) for q: the Procrustes rotation of ``model`` (a ``FreeInertia``) and
+    the centre of mass on the target's."""
+    R, _ = model.rotation(q)
+    c = (np.einsum("ija,ja->i", target.Z, moments.com_per_q) + target.d
+         - R @ (moments.com_per_q @ q))
+    return R, c

@@ -13,7 +13,7 @@ depend on solver.contact.
 import numpy as np
 import pytest
 
-from solver import dynamics, frames, newton, rs
+from solver import body_contact, dynamics, frames, rs
 from test_dynamics import GRAVITY, build_body
 
 
@@ -181,29 +181,20 @@ def test_free_step_gradient_matches_finite_differences(free_cube, integrator):
     sim.set_state(s0, linear_velocity=[0.3, 0.0, 0.1], angular_velocity=[0.5, 1.0, -0.2])
     sim.step()
     # The next step's model, built as the step does.
-    if integrator == "newmark":
-        v_q, a_q = sim._body_rates()
-        target = sim._newmark_target(v_q, a_q)
-        model = frames.FramedInertia(sim.moments, 4.0 / sim.dt ** 2, target,
-                                     *sim._mass_damping_terms(v_q))
-        damping = newton.Damping(sim._damping, sim.beta * (sim.potential.rest_hessian @ sim._v_s),
-                                 sim.coords)
-        sim._begin_contact(v_q)
-    else:
-        model = sim._euler_framed_inertia()
-        damping = newton.Damping(sim._damping, np.zeros(6), sim.coords)
-        sim._begin_contact(None)
+    plan = sim.scheme.plan(sim, None)
+    model, damping = sim._framed_inertia(plan), plan.damping
+    sim._begin_contact(plan)
     s = sim.coords + 0.05 * rng.normal(size=6)
     R = rs.exp_rotation(np.array([[0.1, -0.2, 0.3]]))[0] @ sim.rotation
     c = sim.translation + 0.02 * rng.normal(size=3)
     q = sim.deformer.q(s)
     grad, gauss_newton, _, _ = sim.solver.framed_system(model, s, q, R, c, damping,
-                                                       sim._framed_contact)
+                                                       sim.contact.framed_terms)
 
     def value(z):
         ds, R1, c1 = chart(R, c, z, 6)
         return sim.solver.framed_objective(model, s + ds, sim.deformer.q(s + ds), R1, c1, damping,
-                                           sim._framed_contact)
+                                           sim.contact.framed_terms)
 
     fd = central_gradient(value, 12, 1e-6)
     error = np.abs(fd - grad).max() / np.abs(grad).max()
@@ -229,9 +220,8 @@ def test_pinned_step_gradient_matches_finite_differences(pinned_bar):
     sim = simulation(pinned_bar, 1.0 / 24.0, gravity=GRAVITY, frame_motion=motion,
                      contact=contact)
     R, c = motion(0.3)
-    base = sim._newmark_moving_inertia(R, c, sim._newmark_target(*sim._body_rates()),
-                                       np.zeros(sim.basis_size))
-    model = dynamics._ContactInertia(base, sim, R, c)
+    base = sim._inertia(sim.scheme.plan(sim, (R, c)), (R, c))
+    model = body_contact.ContactInertia(base, sim.contact, R, c)
     s = 0.3 * rng.normal(size=6) / np.sqrt(np.maximum(pinned_bar["modes"].eigenvalues[:6], 1))
     J = sim.deformer.q_jacobian(s)
     grad = J.T @ model.evaluate(sim.deformer.q(s), 1)[1]
@@ -341,10 +331,10 @@ def test_a_start_inside_a_collider_fails_clearly(free_cube):
     with pytest.raises(ValueError, match="rows"):
         simulation(free_cube, 0.1, free=True,
                    contact=QuadraticContact(free_cube["X"][idx], rows[:, :3]))
+    # The simulation gives the contact its own scheme, so the two cannot disagree.
     euler_contact = QuadraticContact(free_cube["X"][idx], rows)
-    euler_contact.alpha = 1.0                   # solver.contact's implicit Euler end velocity
-    with pytest.raises(ValueError, match="integrator"):
-        simulation(free_cube, 0.1, free=True, contact=euler_contact)
+    simulation(free_cube, 0.1, free=True, contact=euler_contact, integrator="implicit_euler")
+    assert euler_contact.scheme.velocity_factor == 1.0
 
 
 def test_a_frame_keyed_into_a_collider_within_one_step_fails_clearly(pinned_bar):
