@@ -90,9 +90,10 @@ at 3 m/s, dt = 1/24, damping 0 from 1.99 to 0.49 times the impact speed.
 Beyond the agreed interface: ``Contact.scheme``, the dynamics' integration scheme
 (``integrators``; ``dynamics.Simulation`` sets it), whose velocity factor alpha gives the
 end-of-step velocity friction and damping act on, and ``Contact.max_step`` (optional) bounds a
-line-search step so no sample tunnels through a thin collider. Cost (2 cores, shared): ``evaluate`` on 300 samples against a 1,984-triangle
-sphere, all samples inside its bounding box, 0.5 ms; ``begin_step`` 0.6 ms (static or
-similarity-keyed), 7 ms for a non-uniformly scaled keyed collider (a new tree each step).
+line-search step so no sample tunnels through a thin collider. Cost (2 cores, shared):
+``evaluate`` on 300 samples against a 1,984-triangle sphere, all samples inside its bounding
+box, 0.5 ms; ``begin_step`` 0.6 ms (static or similarity-keyed), 7 ms for a non-uniformly
+scaled keyed collider (a new tree each step).
 
 Units: metres, kilograms, seconds, joules, newtons.
 """

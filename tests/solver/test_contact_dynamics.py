@@ -115,7 +115,7 @@ def test_framed_inertia_blocks_match_finite_differences(free_cube):
     sim = simulation(free_cube, 1.0 / 24.0, gravity=GRAVITY, free=True)
     rB = sim.basis_size
     target = frames.Field(rs.exp_rotation(np.array([[0.2, 0.1, -0.3]]))[0],
-                             0.01 * rng.normal(size=(3, 3, rB)), rng.normal(size=3))
+                          0.01 * rng.normal(size=(3, 3, rB)), rng.normal(size=3))
     model = frames.FramedInertia(sim.moments, 4.0 * 24.0 ** 2, target,
                                  0.3 * sim.moments.mass_matrix, rng.normal(size=rB))
     q = 0.05 * rng.normal(size=rB)
@@ -215,8 +215,8 @@ def test_pinned_step_gradient_matches_finite_differences(pinned_bar):
     rng = np.random.default_rng(7)
     contact = random_quadratic(pinned_bar, rng, 20.0)
     motion = frames.FrameMotion([0.0, 1.0], rs.exp_rotation(np.array([[0, 0, 0],
-                                                                        [0.3, 0, 0.6]])),
-                                  [[0, 0, 0], [0.1, 0.2, 0.0]])
+                                                                      [0.3, 0, 0.6]])),
+                                [[0, 0, 0], [0.1, 0.2, 0.0]])
     sim = simulation(pinned_bar, 1.0 / 24.0, gravity=GRAVITY, frame_motion=motion,
                      contact=contact)
     R, c = motion(0.3)
@@ -352,7 +352,7 @@ def test_a_frame_keyed_into_a_collider_within_one_step_fails_clearly(pinned_bar)
         return floor.evaluate_penalty(x, order)
     floor.evaluate = inside_is_infinite
     motion = frames.FrameMotion([0.0, 1.0 / 24.0], np.stack([np.eye(3)] * 2),
-                                  [[0, 0, 0], [0, 0, -1.0]])
+                                [[0, 0, 0], [0, 0, -1.0]])
     sim = simulation(pinned_bar, 1.0 / 24.0, frame_motion=motion, contact=floor)
     with pytest.raises(dynamics.ContactError, match="moved into the body within one step"):
         sim.step()

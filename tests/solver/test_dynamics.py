@@ -469,8 +469,8 @@ def test_pinned_part_follows_keyed_rotation_and_the_rest_lags(bar):
     """Frame turning 90 deg about z in 1 s (keyed, slerped): pinned nodes sit exactly on the keys,
     the free end trails behind the turn (negative angular offset in the body frame)."""
     keys = frames.FrameMotion([0.0, 1.0], Rotation.from_euler("z", [0.0, 90.0],
-                                                                degrees=True).as_matrix(),
-                                [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+                                                              degrees=True).as_matrix(),
+                              [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     trajectory = simulation(bar, 1.0 / 60.0, mass_damping=1.0, frame_motion=keys).run(30)
     x = positions(bar, trajectory)
     R, c = keys(0.5)
