@@ -4,6 +4,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import contact, dynamics, inversion, materials
+from ..solver.frames import FrameMotion
 from . import (armature, bake, bodies, colliders, jobs, prepared, scene,
                stage_cache)
 from .jobs import Cancelled
@@ -97,8 +98,7 @@ def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
     indices, points, rows, weights, masses = colliders.contact_samples(
         scene.base_vertices(obj), scene.base_triangles(obj), tools.surface_basis, total_mass,
         obj.rs_elastic.contact_samples)
-    return (contact.Contact(found, points, rows, weights, masses,
-                            integrator=obj.rs_elastic.integrator.lower()), indices)
+    return contact.Contact(found, points, rows, weights, masses), indices
 
 
 def gather(obj, blender_scene):
@@ -127,7 +127,7 @@ def gather(obj, blender_scene):
                              "its keyed motion has something to carry")
         rotations, translations = motion
         times = (np.array(frames) - frames[0]) * h
-        frame_motion = dynamics.FrameMotion(times, rotations, translations)
+        frame_motion = FrameMotion(times, rotations, translations)
     else:
         # A still object: simulate in its own space, with gravity turned into it.
         rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())

@@ -18,7 +18,11 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``accuracy`` after a solve: distance of the reduced model from full RS, stretch the targets ask.
 - ``spacetime`` space-time editing with material optimisation (Gauss-Newton on banded systems).
 - ``materials`` linear, StVK and Fung materials on the Cauchy strain; the reduced potential V(s).
-- ``dynamics`` implicit-Euler subspace dynamics in RS coordinates, free or moving frames.
+- ``dynamics`` subspace dynamics in RS coordinates: the simulation, its state and step retries.
+- ``integrators`` the time integration schemes (Newmark, implicit Euler), each chosen once.
+- ``frames``   fixed, keyed and free body frames: mass moments and the inertia of a step in each.
+- ``newton``   Newton / line search of one step's objective, with the RS map's curvature.
+- ``body_contact`` a simulated body's contact samples: world positions, energy terms, guesses.
 - ``inversion`` a volume barrier on the RS strain that keeps reduced bodies from inverting.
 - ``rig``      flesh on a rig: elastic motion as a deviation from linear blend skinning.
 - ``contact``  barrier, friction and damping contact of surface samples with mesh colliders.

@@ -87,12 +87,13 @@ it back the same way. Leaving the contact force out of the carried acceleration
 (contact-stabilised Newmark, Deuflhard, Krause and Ertel 2008) lowered a point mass's rebound
 at 3 m/s, dt = 1/24, damping 0 from 1.99 to 0.49 times the impact speed.
 
-Beyond the agreed interface (optional, backward compatible): ``Contact(..., integrator=)``
-("newmark" by default, as ``dynamics``) selects the end-of-step velocity friction and damping
-act on, and ``Contact.max_step`` bounds a line-search step so no sample tunnels through a
-thin collider. Cost (2 cores, shared): ``evaluate`` on 300 samples against a 1,984-triangle
-sphere, all samples inside its bounding box, 0.5 ms; ``begin_step`` 0.6 ms (static or
-similarity-keyed), 7 ms for a non-uniformly scaled keyed collider (a new tree each step).
+Beyond the agreed interface: ``Contact.scheme``, the dynamics' integration scheme
+(``integrators``; ``dynamics.Simulation`` sets it), whose velocity factor alpha gives the
+end-of-step velocity friction and damping act on, and ``Contact.max_step`` (optional) bounds a
+line-search step so no sample tunnels through a thin collider. Cost (2 cores, shared):
+``evaluate`` on 300 samples against a 1,984-triangle sphere, all samples inside its bounding
+box, 0.5 ms; ``begin_step`` 0.6 ms (static or similarity-keyed), 7 ms for a non-uniformly
+scaled keyed collider (a new tree each step).
 
 Units: metres, kilograms, seconds, joules, newtons.
 """
@@ -110,8 +111,6 @@ MIN_THICKNESS = 1e-3
 """[m] Barrier band used for a collider whose thickness is below it (thickness 0 has no band)."""
 DAMPING_SPRING_POINT = 0.5
 """d / dhat at which the barrier's stiffness defines the damping's spring."""
-VELOCITY_FACTOR = {"newmark": 2.0, "implicit_euler": 1.0}
-"""alpha: a scheme's end-of-step velocity is alpha (x - x_n) / dt - (alpha - 1) v_n."""
 _BARY_TOL = 1e-10
 
 
@@ -325,10 +324,6 @@ class MeshCollider:
         self._placed = {}            # t -> placed surface, the last two placements of a keyed collider
         self._local = None           # the own-space surface, for static and similarity placements
 
-    @property
-    def is_static(self):
-        return self.motion is None
-
     def matrix(self, t):
         """(4, 4) object-to-world matrix at time t [s] (identity for a static collider)."""
         if self.motion is None:
@@ -457,16 +452,14 @@ class _Lagged:
 class Contact:
     """Barrier, lagged friction and normal damping of one body's surface samples against colliders."""
 
-    def __init__(self, colliders, points, rows, weights, masses, integrator="newmark"):
+    def __init__(self, colliders, points, rows, weights, masses):
         """colliders: list of MeshCollider. points (k, 3) [m]: rest positions of the samples in the body's
         rest space; rows (3k, rB): their displacement rows (sample displacement = (rows @ q).reshape(k, 3));
         weights (k,) [m^2]; masses (k,) [kg]: each sample's share of the body's mass.
-        integrator: the dynamics' scheme, "newmark" (end velocity 2 (x - x_n) / dt - v_n) or
-        "implicit_euler" ((x - x_n) / dt); friction and damping act on that end-of-step velocity.
-        Attributes used by dynamics: .points, .rows, .num_samples."""
-        if integrator not in VELOCITY_FACTOR:
-            raise ValueError(f"unknown integrator {integrator!r}; expected one of {sorted(VELOCITY_FACTOR)}")
-        self.alpha = VELOCITY_FACTOR[integrator]
+        Attributes used by dynamics: .points, .rows, .num_samples; it sets .scheme, the integration
+        scheme (``integrators``) whose end-of-step velocity alpha (x - x_n) / dt - (alpha - 1) v_n
+        (alpha its ``velocity_factor``) friction and damping act on; steps need it."""
+        self.scheme = None
         self.colliders = list(colliders)
         self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.rows = rows
@@ -517,6 +510,10 @@ class Contact:
         """Before each internal step [t_start, t_start + dt]: world positions x_start (k, 3) [m] and
         velocities v_start (k, 3) [m/s] at t_start. Places keyed colliders at t_start + dt, lags the friction
         normal forces and tangent frames (IPC-style) and the damping set for this step."""
+        if self.scheme is None:
+            raise ValueError("the contact has no integration scheme: give it to a "
+                             "dynamics.Simulation, or set its scheme (solver.integrators)")
+        alpha = self.scheme.velocity_factor
         x0 = np.asarray(x_start, dtype=np.float64).reshape(-1, 3)
         v0 = np.asarray(v_start, dtype=np.float64).reshape(-1, 3)
         self._dt = float(dt)
@@ -554,7 +551,7 @@ class Contact:
             m_eff = self.total_mass * self.weights[idx] / max(damped_weight, 1e-300)
             dashpot = np.where(damped[idx], 2.0 * zeta * np.sqrt(m_eff * spring), 0.0)
             # End velocity relative to the collider: alpha (x - ref) / dt with this reference.
-            ref = x0[idx] + dc[idx] + (self.alpha - 1.0) / self.alpha * (v0[idx] * dt - dc[idx])
+            ref = x0[idx] + dc[idx] + (alpha - 1.0) / alpha * (v0[idx] * dt - dc[idx])
             self._lagged.append(_Lagged(idx, n[idx], ref, c.friction * lam,
                                         _tangent_basis(n[idx]) if len(idx) else np.zeros((0, 3, 2)),
                                         dashpot))
@@ -649,7 +646,7 @@ class Contact:
         if len(lag.idx) == 0:
             return 0.0
         dt = self._dt
-        alpha = self.alpha
+        alpha = self.scheme.velocity_factor
         rel = x[lag.idx] - lag.ref         # (a, 3) = dt / alpha * the end relative velocity
         value = 0.0
         # Friction: mu lambda f0(|u|), u = T^T rel, smoothed below the slip speed EPS_V.

@@ -3,76 +3,24 @@
 Generalised coordinates are the modal coordinates s (m,) of a deformer (``reduced.ReducedRS``):
 RS coordinates y = (QW) s, reduced displacement coordinates q(s) (rB,), body-frame positions
 ``Y = Xb + B q(s)`` (N, 3) [m] with B (3N, rB) the deformer's basis (zero on pinned DOFs) and
-``Xb = X - origin``. World positions are ``x = R Y + c`` for a frame (R, c):
+``Xb = X - origin``. World positions are ``x = R Y + c`` for a frame (R, c) that is fixed
+(pinned, not moving), keyed (``frame_motion``, e.g. ``frames.FrameMotion``) or free
+(``free=True``); ``frames`` says how each enters a step without touching the vertices.
 
-- pinned, not moving: R = I, c = 0 (origin 0), world = the object's rest space;
-- moving (``frame_motion``): (R(t), c(t)) prescribed per step, e.g. the Blender object's
-  animated transform (rotation and translation only; scale belongs in X). Pinned DOFs are zero
-  in B, so the pinned part follows the keys exactly and the rest lags behind;
-- free (``free=True``): R and c are 6 extra unknowns, c the world position of the rest centre
-  of mass ``origin`` (R = I, c = origin at the start, so world = rest space then).
+``Simulation`` runs the steps. Each internal step dt minimises, over s (and a free frame with
+contact), the inertia of the integration scheme (``integrators``: Newmark's average
+acceleration by default, or implicit Euler, chosen once), the elastic potential V(s), Rayleigh
+damping and the contact energy (``body_contact``), by Newton with a line search
+(``newton``). What a step reads and changes is its ``State``: time, step length, pose and what
+the scheme carries; a step that inverts tets or cannot start outside the colliders is undone
+by restoring a copy of it and retaken in halves (``Simulation.step``).
 
-Time integration (``integrator``): both schemes are one minimisation per step over s, so the
-same Newton / line search solves either. World positions x (N, 3), lumped masses M, internal
-step dt, gravity g (3,) [m/s^2] in world space:
-
-- ``"newmark"`` (default): implicit Newmark average acceleration (beta = 1/4, gamma = 1/2, the
-  trapezoidal rule). With velocity v_n and acceleration a_n carried as state,
-  x_{n+1} = x_n + dt v_n + dt^2/4 (a_n + a_{n+1}) and M a_{n+1} = M g - grad V(x_{n+1}). So
-  a_{n+1} = 4/dt^2 (x_{n+1} - x~), x~ = x_n + dt v_n + dt^2/4 a_n, and the equation of motion
-  4/dt^2 M (x - x~) + grad V - M g = 0 is the stationarity condition of
-
-      s_{n+1} = argmin  2/dt^2 |x(s) - x_hat|_M^2 + V(s),   x_hat = x~ + dt^2/4 g
-
-  (gravity folded in by completing the square). Then a_{n+1} = 4/dt^2 (x_{n+1} - x_n - dt v_n)
-  - a_n and v_{n+1} = 2/dt (x_{n+1} - x_n) - v_n. Why this scheme: it is second order and
-  A-stable, and on a linear system it conserves the energy exactly at any dt (amplification
-  |z| = 1), so a body rings as long as its material says; its only error is a phase lag,
-  relative frequency error 1 - atan(w dt/2)/(w dt/2) ~ (w dt)^2/12 per mode. Stiff high modes
-  are neither damped nor amplified at large w dt, only slowed (they alias to below the Nyquist
-  rate): with dissipation coming only from the user's Rayleigh damping that is what we want,
-  whereas BDF2 / TR-BDF2 would again damp the jiggle numerically (BDF2's root for an undamped
-  mode keeps 97.6 % of the amplitude per period at 24 steps per period, 71 % at 7.3 steps per
-  period, i.e. 3.3 Hz at 24 fps). Its known weakness is that nothing damps what it gets
-  wrong: inconsistent start values and components normal to a constraint ring forever. So
-  ``set_state`` solves the reduced equation of motion for the start acceleration, and the
-  state is kept tangent to the RS map (below). With the nonlinear RS map and materials the
-  energy is no longer exactly conserved, but it stays bounded in the tests (a jelly swinging
-  past 90 degrees at one step per frame).
-- ``"implicit_euler"``: x_hat = x_n + dt v_n + dt^2 g = 2 x_n - x_{n-1} + dt^2 g and the weight
-  1/(2 dt^2) instead of 2/dt^2 (v_n = (x_n - x_{n-1}) / dt). First order; it damps a mode by
-  about (w dt)^2 / 2 per step, more at large dt.
-
-How it composes with the reduced RS map and the frames: the inertia term is always a mass
-norm of x(s) - x_hat with x = R (Xb + B q(s)) + c, so the reduced map enters only through q(s)
-and its Jacobian, exactly as for implicit Euler. Newmark's state lives in the generalised
-coordinates, (s, v_s, a_s) by the trapezoidal recursion, and x_hat's velocity and acceleration
-are pushed forward each step: q_dot = J v_s, q_ddot = J a_s + d^2q/ds^2 (v_s, v_s). Carrying
-them in q-space or world space instead lets their components normal to the RS map ring
-undamped (the trapezoidal rule never damps them), and on a jelly swinging past 90 degrees
-that fed energy in until it blew up; pushed forward they stay tangent. World fields (x_hat,
-velocities) have the form A Xb_k + sum_ij e_i (B_k[j] . Z[i, j]) + d with A (3, 3),
-Z (3, 3, rB), d (3,) (``_Field``), closed under linear combination, so the frame terms are
-contracted from precomputed mass moments (no per-vertex work per step). The free body's frame
-has its own trapezoidal state (world angular velocity and acceleration, centre velocity and
-acceleration) and is eliminated in closed form in each step as for implicit Euler (Procrustes
-below, weight 4/dt^2). A prescribed (keyed) frame moves at its secant velocity over each step;
-a change of that velocity kicks the body's relative velocity so its world momentum is kept
-(``_follow_frame``): exact for keys sampled per frame, first order for smooth motion.
-
-Rayleigh damping is a dissipation potential on the step:
-
-    newmark:   alpha/dt |q - q_n|^2_{M_B} - alpha (M_B v_q,n).q
-               + beta/dt (s - s_n)^T K0 (s - s_n) - beta (K0 v_s,n).s
-    implicit Euler: alpha/(2 dt) |q - q_n|^2_{M_B} + beta/(2 dt) (s - s_n)^T K0 (s - s_n)
-
-whose gradients are alpha M_B q_dot_{n+1} and beta K0 s_dot_{n+1} with each scheme's own
-velocity (trapezoidal: 2/dt (q_{n+1} - q_n) - q_dot_n). Mass damping alpha [1/s] acts on the
-body-frame velocity q_dot (so it damps elastic motion relative to the frame, never the free
-fall or the spin of a free body), stiffness damping beta [s] on the strain rate through the
-rest stiffness K0 = hess V(0) (= Lambda for the linear material; rigid motions have zero
-strain and are not damped). Damping ratio of mode k: zeta_k = alpha/(2 w_k) + beta w_k/2
-(``damping_ratio``).
+Rayleigh damping: mass damping alpha [1/s] acts on the body-frame velocity q_dot (so it damps
+elastic motion relative to the frame, never the free fall or the spin of a free body),
+stiffness damping beta [s] on the strain rate through the rest stiffness K0 = hess V(0)
+(= Lambda for the linear material; rigid motions have zero strain and are not damped), each a
+dissipation potential on the step in the scheme's own end velocity (``integrators``). Damping
+ratio of mode k: zeta_k = alpha/(2 w_k) + beta w_k/2 (``damping_ratio``).
 
 Substeps: ``h`` is the sampling interval (one frame); each frame takes ``substeps`` internal
 steps dt = h / substeps. ``substeps=0`` picks them from the highest retained frequency w_max
@@ -80,74 +28,21 @@ steps dt = h / substeps. ``substeps=0`` picks them from the highest retained fre
 trapezoidal rule keeps that mode's frequency within 7.3 % and every mode below within
 (w/w_max)^2 of that; capped at ``MAX_AUTO_SUBSTEPS`` because past it only the top modes lose
 accuracy, never stability. Bakes then depend on the scene's fps only through the sampling.
-
-Everything per step is reduced:
-
-- fixed or moving frame: the inertia term is a quadratic in q whose linear term needs only the
-  3x3 frame matrices contracted with precomputed mass moments of B and Xb (``H0``, ``H1``);
-- free body: for given q the best frame is closed form (weighted Procrustes): c = centre of mass
-  of x_hat minus R times that of Y, R the rotation maximising tr(R^T K), K = sum m (x_hat -
-  x_hat_cm)(Y - Y_cm)^T, itself linear in q through the same moments. So the 6 frame
-  coordinates are minimised exactly inside the objective and Newton runs on s alone; uniform
-  gravity only moves c (the centre of mass then falls exactly as the scheme's recursion:
-  1/2 g t^2 for Newmark, 1/2 g t^2 + 1/2 g dt t for implicit Euler).
-
-Solver: Newton-type iterations on s, each followed by a backtracking Armijo line search on the
-true objective. The first iteration, and any whose step is already below tolerance, uses the
-Gauss-Newton Hessian J^T H_q J + hess V + (beta/h) K0 (J = dq/ds). Later iterations that still
-move add, for a ``reduced.ReducedRS``, the curvature of the RS map itself, sum_i g_i d^2 q_i/ds^2
-with g = dE/dq (``_GeometricStiffness``): Gauss-Newton converges only linearly once gravity or
-inertia loads a strongly rotated pose (a small soft jelly at h = 1/24 needed 5-15 iterations, 2-3
-with it), while a stiffer or larger body converges in two Gauss-Newton iterations and never pays
-for the extra term. The free body's best-rotation curvature is left out. Linear systems by
-Cholesky; an indefinite full Hessian (buckling, StVK in compression) falls back to
-Gauss-Newton, regularised by a multiple of its diagonal if even that is indefinite. Iterations
-stop once a step moves the body by less than ``tolerance`` times the bounding-box diagonal
-(mass-weighted RMS) or after ``max_iterations``. The first guess is the constant-velocity
-predictor s_n + dt s_dot_n.
-
-Implicit Euler damps motion numerically, more at large dt: a free body spinning by delta
-radians per step loses about delta^2 of its angular velocity per step.
-
-Contact (``contact``, a ``contact.Contact``): its energy of the step, E_c(x) of the k surface
-samples' world positions x_p = R (P_p - origin + rows_p q) + c at t_{n+1} (barrier, lagged
-friction and damping), joins the step objective, and ``begin_step`` gets the samples'
-positions and velocities at t_n before each internal step (Newmark's pushed-forward
-velocities, implicit Euler's backward difference); the first step checks the start
-(``check_start``: ValueError naming the collider). Pinned or keyed bodies know (R, c) at
-t_{n+1}, so only q moves: gradient J^T rows^T R^T g, Gauss-Newton Hessian
-J^T rows^T R^T H R rows J, summed only over samples whose Hessian block is nonzero. A free
-body's frame is no longer eliminated (contact forces move and turn it): Newton runs jointly on
-(s, phi, u) with R = exp(skew(phi)) R_it, c = c_it + u re-linearised at every iterate, the
-inertia's gradient and Hessian blocks contracted from the same mass moments
-(``_FramedInertia``), and the spin and drift state updated from the solved (R, c) as before;
-without contact the closed-form frame is kept (same steps to solver tolerance, tested). The
-start guess is the predictor (in its best frame), or the state at t_n if the predictor is
-inside a collider; the barrier's +inf then keeps every accepted iterate outside. Newmark is
-contact-stabilised (``_drop_contact_acceleration``): the step's contact force acts on the
-velocity but is left out of the acceleration carried into the next step. Carried, a one-step
-impact kicked the next step again (nothing in the trapezoidal rule damps it): a soft cube
-dropped 1 m onto an undamped floor gained 1.3 m g h and climbed 0.18 m above its start; a
-cube rocking after an impact at one step per frame gained a spurious spin about the vertical
-axis (1.4 rad/s after 3 s, frictionless) and with friction its frame acceleration kept ringing.
-Cost on a 0.2 m cube (8 modes, 60 samples, 4 substeps, a floor): 250 steps/s against 1,400
-without it (``test_collisions``).
 """
 
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
-from scipy.spatial.transform import Rotation, Slerp
 
-from . import inversion, reduced, rs
+from . import frames, integrators, inversion, newton
+from .body_contact import BodyContact, ContactError, ContactInertia, StartsInsideError
 
-ARMIJO = 1e-4
-MAX_HALVINGS = 30
 MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
-HOLD_MU = 1e-6             # Tikhonov weight of the held deformation (``_holding_deformation``)
-HOLD_ROUNDS = 3            # fits of the held deformation, each holding the samples the last pushed in
 MIN_VOLUME_RATIO = 1e-3    # det F at or below this counts as inverted (flat or turned inside out)
+SUBSTEP_BOUND = 1.0        # largest dt * w_max of automatic substeps (module docstring)
+MAX_AUTO_SUBSTEPS = 64     # automatic substeps stop here; only top-mode accuracy suffers past it
+MAX_SUBSTEPS = 1000        # largest user override
 
 
 class InversionError(RuntimeError):
@@ -170,17 +65,6 @@ class InversionError(RuntimeError):
         self.detail = (f"{what} even with the time step cut to {dt:.3g} s; make the material "
                        f"stiffer, add substeps or damping, or use fewer modes")
         super().__init__(f"At t = {time:.4g} s (frame {frame} after the start): {self.detail}")
-STABILISED_CONTACT = True  # Newmark leaves contact forces out of its carried acceleration
-_LEVI_CIVITA = -np.transpose(rs.skew(np.eye(3)), (1, 2, 0))           # eps_ijk (3, 3, 3)
-
-
-class ContactError(ValueError):
-    """A contact a step cannot resolve: a collider or the keyed frame moved into the body within
-    one step, even at the smallest retried step (``Simulation.step``). One readable line."""
-
-
-class StartsInsideError(ContactError):
-    """The body starts inside a collider (``contact.Contact.check_start``); never retried."""
 
 
 class SimulationCancelled(Exception):
@@ -192,31 +76,6 @@ class SimulationCancelled(Exception):
     def __init__(self, trajectory):
         super().__init__("simulation cancelled")
         self.trajectory = trajectory
-
-
-class FrameMotion:
-    """Prescribed rigid motion of a body frame, sampled at increasing times.
-
-    times (F,) [s]; rotations (F, 3, 3) body-to-world; translations (F, 3) [m]. Calling it at t
-    returns (R (3, 3), c (3,)): slerp and linear interpolation between samples, held constant
-    outside them (like Blender's constant F-curve extrapolation).
-    """
-
-    def __init__(self, times, rotations, translations):
-        self.times = np.asarray(times, dtype=np.float64).reshape(-1)
-        self.rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
-        self.translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-        if len(self.times) == 1:
-            self._slerp = None
-        else:
-            self._slerp = Slerp(self.times, Rotation.from_matrix(self.rotations))
-
-    def __call__(self, t):
-        t = float(np.clip(t, self.times[0], self.times[-1]))
-        c = np.array([np.interp(t, self.times, self.translations[:, i]) for i in range(3)])
-        if self._slerp is None:
-            return self.rotations[0].copy(), c
-        return self._slerp([t]).as_matrix()[0], c
 
 
 @dataclass
@@ -247,297 +106,22 @@ class Trajectory:
         return body @ np.swapaxes(self.rotations, 1, 2) + self.translations[:, None, :]
 
 
-def _best_rotation(K):
-    """argmax over rotations of tr(R^T K) for K (3, 3), and that maximum."""
-    U, sv, Vt = np.linalg.svd(K)
-    sign = 1.0 if np.linalg.det(U @ Vt) >= 0.0 else -1.0
-    R = (U * np.array([1.0, 1.0, sign])) @ Vt
-    return R, sv[0] + sv[1] + sign * sv[2]
+@dataclass
+class State:
+    """What a step reads and changes, so all that ``Simulation.step`` restores to retake one:
+    time t_n [s], the internal step dt [s], the pose at t_n (``integrators.Pose``), what the
+    scheme carries to the next step (``integrators.Rates``, or implicit Euler's pose one step
+    back) and whether the contact has checked this start."""
 
+    time: float
+    dt: float
+    pose: integrators.Pose = None
+    carried: object = None
+    contact_checked: bool = False
 
-class _QuadraticInertia:
-    """kappa/2 q^T M_B q - b.q: fixed or prescribed frame (the inertia and mass damping)."""
-
-    def __init__(self, kappa, mass_matrix, b):
-        self.hess = kappa * mass_matrix
-        self.b = b
-
-    def evaluate(self, q, order):
-        grad = self.hess @ q - self.b
-        value = 0.5 * float((grad - self.b) @ q)
-        return value, grad, (self.hess if order >= 2 else None)
-
-
-class _FreeInertia:
-    """Free body: inertia with the frame (R, c) minimised in closed form (module docstring).
-
-    value(q) = scale/2 (q^T M_c q + 2 a.q - 2 sigma(K0 + Kq q)) + 1/2 q^T D q + e.q,
-    sigma(K) = max_R tr(R^T K). scale = 1/dt^2 (implicit Euler) or 4/dt^2 (Newmark); Kq (9, rB);
-    M_c the centred mass matrix of B; D (rB, rB) and e (rB,) the mass-damping terms.
-    """
-
-    def __init__(self, scale, centred_mass, damping_matrix, damping_linear, a, K0, Kq):
-        self.scale, self.K0, self.Kq = scale, K0, Kq
-        self.quad = scale * centred_mass + damping_matrix
-        self.lin = scale * a + damping_linear
-
-    def rotation(self, q):
-        return _best_rotation(self.K0 + (self.Kq @ q).reshape(3, 3))
-
-    def evaluate(self, q, order):
-        R, sigma = self.rotation(q)
-        Mq = self.quad @ q
-        value = 0.5 * float(Mq @ q) + float(self.lin @ q) - self.scale * sigma
-        if order < 1:
-            return value, None, None
-        grad = Mq + self.lin - self.scale * (R.reshape(-1) @ self.Kq)
-        return value, grad, (self.quad if order >= 2 else None)
-
-
-
-def _axial(N):
-    """(..., 3) axial vectors of (..., 3, 3): tr(skew(w) N) = -w . axial(N)."""
-    return np.stack([N[..., 2, 1] - N[..., 1, 2], N[..., 0, 2] - N[..., 2, 0],
-                     N[..., 1, 0] - N[..., 0, 1]], axis=-1)
-
-
-class _ContactInertia:
-    """A pinned body's step model (``_QuadraticInertia``) plus its contact energy in the known
-    frame (R, c) of the step's end: x_p = R (P_p - origin + rows_p q) + c, so the gradient
-    adds rows^T R^T g and the Gauss-Newton Hessian rows^T R^T H R rows (``_contact_terms``)."""
-
-    def __init__(self, model, sim, R, c):
-        self.model, self.sim = model, sim
-        self.R, self.c = np.asarray(R, dtype=np.float64), np.asarray(c, dtype=np.float64)
-
-    def evaluate(self, q, order):
-        value, grad, hess = self.model.evaluate(q, order)
-        extra, g, H = self.sim._contact_terms(q, self.R, self.c, order, framed=False)
-        if not np.isfinite(extra):
-            return np.inf, None, None
-        return (value + extra, grad + g if order >= 1 else None,
-                hess + H if order >= 2 else None)
-
-
-class _FramedInertia:
-    """Free body with its frame explicit (used with contact): in the unknowns (q, phi, u),
-    R = exp(skew(phi)) R_ref, c = c_ref + u, linearised at phi = u = 0 (the current iterate),
-
-        E = scale/2 sum_k m_k |R Y_k(q) + c - x_hat_k|^2 + 1/2 q^T D q + e.q,   Y = Xb + B q.
-
-    Expanded with the mass moments (R orthogonal, constants dropped):
-
-        E = scale (1/2 q^T M_B q + a.q + M/2 |c|^2 - c.X + tr(R^T W)) + 1/2 q^T D q + e.q,
-        W(q, c) = c m(q)^T - G(q),  m(q) = sum m Y = m_X + F_B q,  G(q) = sum m x_hat Y^T = G0 + Gq q,
-
-    a = B^T M Xb, X = sum m x_hat (3,), M the total mass; for x_hat = A Xb + (Z : B) + d
-    (``_Field``): X = A m_X + Z : F_B + M d, G0 = A S0 + Z : H0 + d m_X^T,
-    Gq = A H0^T + Z : H1 + d F_B (contractions as in ``_newmark_free_inertia``, with H1 not
-    centred). With tr(exp(-skew(phi)) N) = tr N + phi.axial(N) + 1/2 phi^T (sym N - tr N I) phi
-    + O(phi^3) for N = W R_ref^T (``_axial``), the gradient at phi = u = 0 is
-
-        q:   scale (M_B q + a + F_B^T R^T c - Gq^T vec R) + D q + e
-        phi: scale axial(N)
-        u:   scale (M c + R m(q) - X)           (= scale sum m (x - x_hat))
-
-    and the Hessian blocks (N linear in q and c):
-
-        qq: scale M_B + D;   qu: scale F_B^T R^T;   uu: scale M I;
-        phi phi: scale (sym N - tr N I);   phi u: scale skew(R m(q));
-        phi q_b: scale axial((c F_B[:, b]^T - Gq[:, :, b]) R^T).
-
-    Gauss-Newton (scale sum m (dx/dz)^T dx/dz, always PSD, x = R Y + c) differs only in
-    phi phi: scale R (tr S I - S) R^T with S = sum m Y Y^T = S0 + H0 q + (H0 q)^T + q^T H1 q,
-    and phi q: scale R sum m skew(Y_k) B_k. Its unscaled form is the mass metric of a step
-    (``mass``), which measures how far a step moves the body. Everything is contracted from
-    the moments (O(rB^2) per evaluation, no per-vertex work).
-    """
-
-    def __init__(self, sim, scale, target, damping_matrix, damping_linear):
-        self.sim, self.scale = sim, scale
-        self.D, self.e = damping_matrix, damping_linear
-        A, Z, d = target.A, target.Z, target.d
-        mX, FB = sim.first_moment_X, sim.first_moment_B
-        self.X = A @ mX + np.einsum("ija,ja->i", Z, FB) + sim.total_mass * d
-        self.G0 = A @ sim.S0 + np.einsum("ija,jla->il", Z, sim.H0) + np.outer(d, mX)
-        self.Gq = (np.einsum("ij,ljb->ilb", A, sim.H0) + np.einsum("ija,jlab->ilb", Z, sim.H1)
-                   + d[:, None, None] * FB[None])
-
-    @staticmethod
-    def mass_metric(sim, q, R):
-        """sum_k m_k (dx_k/dz)^T dx_k/dz (rB + 6, rB + 6) for z = (q, phi, u) (class docstring)."""
-        rB, FB = sim.basis_size, sim.first_moment_B
-        mq = sim.first_moment_X + FB @ q
-        H0q = sim.H0 @ q
-        P = sim.H0 + sim.H1 @ q                           # [j, m, a] = sum m B_k[j, a] Y_k[m]
-        S = sim.S0 + H0q + H0q.T + np.einsum("a,ijab,b->ij", q, sim.H1, q)
-        mass = np.zeros((rB + 6, rB + 6))
-        mass[:rB, :rB] = sim.mass_matrix
-        mass[:rB, rB + 3:] = FB.T @ R.T
-        mass[:rB, rB:rB + 3] = (R @ -np.einsum("ijm,jma->ia", _LEVI_CIVITA, P)).T
-        mass[rB:rB + 3, rB:rB + 3] = R @ (np.trace(S) * np.eye(3) - S) @ R.T
-        mass[rB:rB + 3, rB + 3:] = rs.skew(R @ mq)
-        mass[rB + 3:, rB + 3:] = sim.total_mass * np.eye(3)
-        return np.triu(mass) + np.triu(mass, 1).T
-
-    def value(self, q, R, c):
-        sim = self.sim
-        W = np.outer(c, sim.first_moment_X + sim.first_moment_B @ q) - self.G0 - self.Gq @ q
-        inertia = (0.5 * q @ (sim.mass_matrix @ q) + sim._trace_H0 @ q
-                   + 0.5 * sim.total_mass * c @ c - c @ self.X + np.sum(R * W))
-        return float(self.scale * inertia + 0.5 * q @ (self.D @ q) + self.e @ q)
-
-    def derivatives(self, q, R, c):
-        """(grad (rB+6,), exact Hessian, Gauss-Newton Hessian (rB+6, rB+6), unscaled mass
-        metric (rB+6, rB+6)) in (q, phi, u) at phi = u = 0 (class docstring)."""
-        sim, k = self.sim, self.scale
-        rB, FB, M_B = sim.basis_size, sim.first_moment_B, sim.mass_matrix
-        mq = sim.first_moment_X + FB @ q
-        N = (np.outer(c, mq) - self.G0 - self.Gq @ q) @ R.T
-        grad = np.concatenate([
-            k * (M_B @ q + sim._trace_H0 + FB.T @ (R.T @ c) - self.Gq.reshape(9, -1).T @ R.ravel())
-            + self.D @ q + self.e,
-            k * _axial(N),
-            k * (sim.total_mass * c + R @ mq - self.X)])
-        mass = self.mass_metric(sim, q, R)
-        gauss_newton = k * mass
-        gauss_newton[:rB, :rB] += self.D
-        exact = gauss_newton.copy()
-        dN = np.einsum("i,lb->ilb", c, FB) - self.Gq                          # dW/dq_b
-        exact[rB:rB + 3, :rB] = k * _axial(np.einsum("ilb,jl->bij", dN, R)).T
-        exact[:rB, rB:rB + 3] = exact[rB:rB + 3, :rB].T
-        exact[rB:rB + 3, rB:rB + 3] = k * (0.5 * (N + N.T) - np.trace(N) * np.eye(3))
-        return grad, exact, gauss_newton, mass
-
-
-class _Field:
-    """A world-space field over the nodes, F_k = A Xb_k + sum_ij e_i (B_k[j] . Z[i, j]) + d.
-
-    A (3, 3), Z (3, 3, rB), d (3,); B_k[j] (rB,) is row 3k + j of the basis. Positions
-    R (Xb + B q) + c are ``position(R, q, c)``; Newmark's velocities and accelerations are
-    linear combinations of such fields, so they stay in this form (module docstring).
-    """
-
-    __slots__ = ("A", "Z", "d")
-
-    def __init__(self, A, Z, d):
-        self.A, self.Z, self.d = A, Z, d
-
-    @classmethod
-    def position(cls, R, q, c):
-        return cls(np.array(R, dtype=np.float64), R[:, :, None] * q, np.array(c, dtype=np.float64))
-
-    @classmethod
-    def constant(cls, d, basis_size):
-        return cls(np.zeros((3, 3)), np.zeros((3, 3, basis_size)), np.asarray(d, dtype=np.float64))
-
-    def __add__(self, other):
-        return _Field(self.A + other.A, self.Z + other.Z, self.d + other.d)
-
-    def __sub__(self, other):
-        return _Field(self.A - other.A, self.Z - other.Z, self.d - other.d)
-
-    def __rmul__(self, k):
-        return _Field(k * self.A, k * self.Z, k * self.d)
-
-
-_SERIES_BELOW = 0.1     # rad: below, the Rodrigues coefficients use their series
-_SKEW_UNITS = rs.skew(np.eye(3))                                        # (3, 3, 3): E_i
-_STRAIN_COLUMNS = rs.STRAIN_BASIS.reshape(6, 9).T                       # (9, 6): vec(B_k)
-
-
-def _rodrigues_derivatives(t2):
-    """(a, b, c, d, e, f) (n,) of R = I + aK + bK^2: c = a'/t, d = b'/t, e = c'/t, f = d'/t.
-
-    t = |omega|, t2 = t^2; three-term series below 0.1 rad (truncation < 1e-11 relative).
-    """
-    small = t2 < _SERIES_BELOW ** 2
-    t2s = np.where(small, 1.0, t2)
-    t = np.sqrt(t2s)
-    a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2s
-    c = (np.cos(t) - a) / t2s
-    d = (a - 2.0 * b) / t2s
-    return (np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, a),
-            np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, b),
-            np.where(small, -1.0 / 3.0 + t2 / 30.0 - t2 * t2 / 840.0, c),
-            np.where(small, -1.0 / 12.0 + t2 / 180.0 - t2 * t2 / 6720.0, d),
-            np.where(small, 1.0 / 15.0 - t2 / 210.0 + t2 * t2 / 7560.0, (-a - 3.0 * c) / t2s),
-            np.where(small, 1.0 / 90.0 - t2 / 1680.0 + t2 * t2 / 75600.0, (c - 4.0 * d) / t2s))
-
-
-class _GeometricStiffness:
-    """sum_i g_i d^2 q_i / ds^2 (m, m) of a ReducedRS for a fixed vector g (rB,).
-
-    The Gauss-Newton Hessian J^T H_q J misses this term; with it the step is a true Newton
-    step and converges quadratically where the RS map curves (large rotations under load).
-    ReducedRS's q is linear in s plus sum_C w_e P_e vec(b_e(y_e)), y_e = U_e s, so the term is
-    sum_e U_e^T G_e U_e with G_e (9, 9) the Hessian of <lam_e, b_e(y)>, lam_e = w_e P_e^T g
-    (3, 3), b = R(omega) S - I, S = I + eps. It has no eps-eps block;
-    omega-eps: <lam B_k, dR_i> = <B_k, lam^T dR_i>, with dR_i = a E_i + b (omega e_i^T +
-    e_i omega^T - 2 omega_i I) + omega_i (c K + d K^2);
-    omega-omega: the Hessian of <L, R(omega)> = tr L + a p + b r, L = lam S, p = omega.vee(L),
-    r = omega^T A omega, A = sym(L) - tr(L) I, i.e.
-    (c p + d r) I + (e p + f r) omega omega^T + c (omega v^T + v omega^T)
-    + 2 d (omega u^T + u omega^T) + 2 b A, v = vee(L), u = A omega.
-    Only a Hessian model: the gradient always comes from ``q_jacobian``.
-    """
-
-    def __init__(self, deformer):
-        weighted = deformer.cubature_weights[:, None, None] * deformer.projections  # (C, rB, 9)
-        self.weighted = np.ascontiguousarray(weighted.transpose(1, 0, 2).reshape(
-            deformer.basis_size, -1))                                          # (rB, 9C)
-        self.U = deformer.modal_rs_cubature                                    # (C, 9, m)
-        self.flat = self.U.reshape(-1, self.U.shape[2])
-
-    def __call__(self, s, g):
-        y = self.U @ s
-        n = len(y)
-        omega = y[:, :3]
-        a, b, c, d, e, f = _rodrigues_derivatives(np.einsum("ci,ci->c", omega, omega))
-        K = rs.skew(omega)
-        K2 = K @ K
-        S = (y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + np.eye(3)
-        lam = (g @ self.weighted).reshape(n, 3, 3)
-        G = np.zeros((n, 9, 9))
-        G[:, :3, :3] = self._omega_omega(omega, lam @ S, a, b, c, d, e, f)
-        G[:, :3, 3:] = self._omega_eps(omega, K, K2, lam, a, b, c, d)
-        G[:, 3:, :3] = np.swapaxes(G[:, :3, 3:], 1, 2)
-        H = self.flat.T @ (G @ self.U).reshape(-1, self.U.shape[2])
-        return 0.5 * (H + H.T)
-
-    @staticmethod
-    def _omega_omega(omega, L, a, b, c, d, e, f):
-        """Hessian of <L, R(omega)> (n, 3, 3) (class docstring)."""
-        flat = L.reshape(-1, 9)
-        v = flat[:, [7, 2, 3]] - flat[:, [5, 6, 1]]                          # vee(L)
-        trace = flat[:, 0] + flat[:, 4] + flat[:, 8]
-        A = 0.5 * (L + np.swapaxes(L, 1, 2)) - trace[:, None, None] * np.eye(3)
-        u = np.einsum("nij,nj->ni", A, omega)
-        p, r = np.einsum("ni,ni->n", omega, v), np.einsum("ni,ni->n", omega, u)
-        cross = c[:, None, None] * v[:, :, None] + 2.0 * d[:, None, None] * u[:, :, None]
-        cross = cross * omega[:, None, :]
-        return ((c * p + d * r)[:, None, None] * np.eye(3) + cross + np.swapaxes(cross, 1, 2)
-                + (e * p + f * r)[:, None, None] * omega[:, :, None] * omega[:, None, :]
-                + 2.0 * b[:, None, None] * A)
-
-    @staticmethod
-    def _omega_eps(omega, K, K2, lam, a, b, c, d):
-        """<lam B_k, dR_i> (n, 3, 6) through lam^T dR_i projected on the strain basis."""
-        n = len(omega)
-        eye = np.eye(3)
-        dR = (a[:, None, None, None] * _SKEW_UNITS
-              + b[:, None, None, None] * (omega[:, None, :, None] * eye[None, :, None, :]
-                                          + eye[None, :, :, None] * omega[:, None, None, :]
-                                          - 2.0 * omega[:, :, None, None] * eye)
-              + omega[:, :, None, None] * (c[:, None, None] * K + d[:, None, None] * K2)[:, None])
-        M = np.swapaxes(lam, 1, 2)[:, None] @ dR                                # (n, 3, 3, 3)
-        return M.reshape(n, 3, 9) @ _STRAIN_COLUMNS
-
-
-INTEGRATORS = ("newmark", "implicit_euler")
-SUBSTEP_BOUND = 1.0        # largest dt * w_max of automatic substeps (module docstring)
-MAX_AUTO_SUBSTEPS = 64     # automatic substeps stop here; only top-mode accuracy suffers past it
-MAX_SUBSTEPS = 1000        # largest user override
+    def copy(self):
+        return State(self.time, self.dt, self.pose.copy(), self.carried.copy(),
+                     self.contact_checked)
 
 
 def automatic_substeps(h, omega_max, bound=SUBSTEP_BOUND, cap=MAX_AUTO_SUBSTEPS):
@@ -575,10 +159,11 @@ class Simulation:
     gravity (3,) [m/s^2]: in world space (= rest space when there is no frame motion).
     mass_damping alpha [1/s], stiffness_damping beta [s]: Rayleigh damping, see above.
     free: the body has no pins and gets a floating frame. frame_motion: callable t -> (R, c)
-      (e.g. ``FrameMotion``) for a moving pinned body; not with ``free``.
+      (e.g. ``frames.FrameMotion``) for a moving pinned body; not with ``free``.
     start_time t0 [s]; tolerance: Newton stops when a step moves the body by less than this
       fraction of the bounding-box diagonal (RMS); max_iterations per step.
-    integrator: "newmark" (default) or "implicit_euler". substeps: internal steps per h (>= 1),
+    integrator: "newmark" (default), "implicit_euler", or a scheme (``integrators``), chosen
+      once (``scheme``; ``integrator`` keeps its name). substeps: internal steps per h (>= 1),
       or 0 for automatic (``automatic_substeps`` of the highest rest frequency); dt = h /
       substeps. ``omega`` (m,) holds the rest frequencies [rad/s], ascending.
     tets (E, 4): the body's tet mesh (rest_positions are its nodes). Given, every internal step
@@ -590,9 +175,10 @@ class Simulation:
       check (the step is taken as it comes).
     contact: a ``contact.Contact`` of this body's surface samples (its rows over the same
       basis B, its points in rest space), or None. Its energy joins every step's objective
-      (module docstring, Contact); a start inside a collider raises ValueError at the first step.
-      Its optional ``proximity`` lets a step carried into a collider start outside it
-      (``_holding_deformation``).
+      (``body_contact``); a start inside a collider raises ``StartsInsideError`` (a ValueError)
+      at the first step. The simulation gives it its scheme (``contact.scheme``): friction and
+      damping act on the scheme's end velocity. Its optional ``proximity`` lets a step carried
+      into a collider start outside it (``body_contact.BodyContact.holding_deformation``).
     external_force: callable t [s] -> (rB,) generalised force in q-space [N m per unit q],
       e.g. ``rig.RigLoad.force`` (a rig's accelerations and gravity felt by its flesh), added
       to gravity's B^T M g wherever that enters (each step at t_{n+1}, the start acceleration
@@ -604,8 +190,9 @@ class Simulation:
 
     The body starts at rest in its frame at s = 0 (``set_state`` changes that); a moving frame's
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
-    the body along. State attributes: time, coords (s), q, rotation, translation; ``iterations``
-    of the last frame (summed over its substeps).
+    the body along. ``state`` (``State``) is all a step changes; time, dt, coords (s), q,
+    rotation and translation read it. ``iterations``: Newton iterations of the last frame
+    (summed over its substeps).
     """
 
     def __init__(self, deformer, rest_positions, masses, potential, h, gravity=(0.0, 0.0, 0.0),
@@ -613,230 +200,89 @@ class Simulation:
                  start_time=0.0, tolerance=1e-5, max_iterations=20, integrator="newmark",
                  substeps=1, tets=None, contact=None, external_force=None,
                  sample_placement=None):
-        if free and frame_motion is not None:
-            raise ValueError("a free body cannot also follow a prescribed frame motion")
-        if external_force is not None and (free or frame_motion is not None):
-            raise ValueError("an external force is for a body in a fixed frame (e.g. the "
-                             "flesh of a rig, solver.rig), not a free or moving one")
-        self.external_force = external_force
-        if sample_placement is not None and (free or frame_motion is not None or contact is None):
-            raise ValueError("a sample placement carries the contact samples of a body in a "
-                             "fixed frame; it needs a contact and no free or moving frame")
-        self._placement = sample_placement
-        self._end_placement = None
-        if deformer.basis is None:
-            raise ValueError("the deformer has no basis B; build it with its basis")
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"unknown integrator {integrator!r}; expected one of "
-                             f"{', '.join(INTEGRATORS)}")
-        if int(substeps) != substeps or not 0 <= substeps <= MAX_SUBSTEPS:
-            raise ValueError(f"substeps must be an integer in [0, {MAX_SUBSTEPS}] (0 = "
-                             f"automatic), got {substeps!r}")
-        self.deformer, self.potential = deformer, potential
+        _check_arguments(deformer, h, mass_damping, stiffness_damping, free, frame_motion,
+                         substeps, contact, external_force, sample_placement)
+        self.scheme = integrators.scheme(integrator)
+        self.integrator = self.scheme.name
+        self.deformer, self.potential, self.external_force = deformer, potential, external_force
         self.h, self.free, self.frame_motion = float(h), bool(free), frame_motion
-        if not self.h > 0.0:
-            raise ValueError(f"time step must be positive (got {h!r})")
+        self.fixed_frame = not (self.free or frame_motion is not None)
         self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         self.alpha, self.beta = float(mass_damping), float(stiffness_damping)
-        if self.alpha < 0.0 or self.beta < 0.0:
-            raise ValueError("damping coefficients must be non-negative")
-        self.integrator, self.newmark = integrator, integrator == "newmark"
         self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
         self.num_coords = deformer.num_coords
-        self._precompute(np.asarray(rest_positions, dtype=np.float64),
-                         np.asarray(masses, dtype=np.float64))
+        X = np.asarray(rest_positions, dtype=np.float64)
+        self.moments = frames.MassMoments(X, np.asarray(masses, dtype=np.float64),
+                                          np.asarray(deformer.basis, dtype=np.float64),
+                                          self.free, frame_motion is not None)
+        self.basis_size, self.origin = self.moments.basis_size, self.moments.origin
+        self.diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+        self.solver = newton.StepSolver(
+            deformer, potential, self.moments.mass_matrix,
+            (self.tolerance * self.diagonal) ** 2 * self.moments.total_mass, self.max_iterations)
         self.omega = self._rest_frequencies()
         self.substeps = int(substeps) or automatic_substeps(self.h, self.omega[-1])
-        self.dt = self.h / self.substeps
-        # (beta/dt) K0 for Newmark, (beta/(2 dt)) K0 for implicit Euler, as 1/2 ds^T D ds.
-        scale = (2.0 if self.newmark else 1.0) * self.beta / self.dt
-        self._damping = scale * potential.rest_hessian                             # (m, m)
-        self._geometric = (_GeometricStiffness(deformer)
-                           if isinstance(deformer, reduced.ReducedRS) else None)
-        self.time = float(start_time)
+        self.state = State(float(start_time), self.h / self.substeps)
         self._start_time = self.time
         self._volumes = (None if tets is None else
                          inversion.DeformedVolumes(rest_positions, tets, deformer.basis))
-        self._setup_contact(contact)
+        self.contact = None
+        if contact is not None:    # the contact's friction and damping act on our end velocity
+            contact.scheme = self.scheme
+            self.contact = BodyContact(contact, deformer, potential.rest_hessian, self.origin,
+                                       sample_placement)
         self.set_state(np.zeros(self.num_coords))
-
-    # -- precomputation -----------------------------------------------------------------------
-
-    def _precompute(self, X, masses):
-        """Mass moments of Xb and B (O(N rB^2) once, so that no step touches the vertices)."""
-        B = np.asarray(self.deformer.basis, dtype=np.float64)
-        n, rB = len(X), B.shape[1]
-        self.basis_size = rB
-        self.total_mass = float(masses.sum())
-        self.origin = masses @ X / self.total_mass if self.free else np.zeros(3)
-        Xb = X - self.origin
-        Bk = B.reshape(n, 3, rB)
-        self.mass_matrix = B.T @ (np.repeat(masses, 3)[:, None] * B)             # M_B (rB, rB)
-        self.mass_matrix = 0.5 * (self.mass_matrix + self.mass_matrix.T)
-        self.first_moment_B = np.einsum("k,kia->ia", masses, Bk)                # (3, rB)
-        self.first_moment_X = masses @ Xb                                       # (3,)
-        self.diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
-        self._step_tol2 = (self.tolerance * self.diagonal) ** 2 * self.total_mass
-        if not (self.free or self.frame_motion is not None):
-            return
-        mB = masses[:, None, None] * Bk
-        self.S0 = Xb.T @ (masses[:, None] * Xb)                                  # (3, 3)
-        self.H0 = np.einsum("kia,kj->ija", mB, Xb)                              # (3, 3, rB)
-        self.H1 = np.empty((3, 3, rB, rB))               # [i, j] = sum m B_k[i]^T B_k[j]
-        for i in range(3):                               # nine GEMMs, no loop over vertices
-            for j in range(3):
-                self.H1[i, j] = mB[:, i, :].T @ Bk[:, j, :]
-        self._trace_H0 = np.einsum("iia->a", self.H0)                           # B^T M Xb
-        if self.free:
-            D = self.first_moment_B / self.total_mass                           # COM per unit q
-            self._com_per_q = D
-            self._H1c = self.H1 - self.total_mass * D[:, None, :, None] * D[None, :, None, :]
-            self._centred_mass = np.einsum("iiab->ab", self._H1c)
 
     def _rest_frequencies(self):
         """(m,) rest frequencies [rad/s]: K0 w = omega^2 J0^T M_B J0 w at s = 0, ascending."""
         J0 = self.deformer.q_jacobian(np.zeros(self.num_coords))
-        mass = J0.T @ self.mass_matrix @ J0
+        mass = J0.T @ self.moments.mass_matrix @ J0
         values = scipy.linalg.eigh(self.potential.rest_hessian, 0.5 * (mass + mass.T),
                                    eigvals_only=True)
         return np.sqrt(np.maximum(values, 0.0))
 
     # -- state --------------------------------------------------------------------------------
 
+    time = property(lambda self: self.state.time, doc="t_n [s]")
+    dt = property(lambda self: self.state.dt, doc="the internal step [s]")
+    coords = property(lambda self: self.state.pose.coords, doc="s (m,)")
+    q = property(lambda self: self.state.pose.q, doc="q(s) (rB,)")
+    rotation = property(lambda self: self.state.pose.rotation, doc="the frame's R (3, 3)")
+    translation = property(lambda self: self.state.pose.translation, doc="the frame's c (3,)")
+
     def set_state(self, coords, coords_velocity=None, linear_velocity=None,
                   angular_velocity=None):
         """Set s (m,) and its velocity ds/dt (m,) at the current time (default at rest).
 
         Free bodies: the frame starts at R = I, c = origin, moving with ``linear_velocity``
-        (3,) [m/s] and world ``angular_velocity`` (3,) [rad/s]. Implicit Euler keeps them as
-        backward differences over one step dt; Newmark as velocities, with the start
-        acceleration from the reduced equation of motion (``_start_newmark``).
+        (3,) [m/s] and world ``angular_velocity`` (3,) [rad/s]. What the scheme carries starts
+        from these (``integrators``: Newmark also solves for the start acceleration).
         """
-        dt = self.dt
-        self.coords = np.array(coords, dtype=np.float64).reshape(self.num_coords)
-        velocity = (np.zeros(self.num_coords) if coords_velocity is None
-                    else np.asarray(coords_velocity, dtype=np.float64).reshape(self.num_coords))
+        m = self.num_coords
+        coords = np.array(coords, dtype=np.float64).reshape(m)
+        velocity = (np.zeros(m) if coords_velocity is None
+                    else np.asarray(coords_velocity, dtype=np.float64).reshape(m))
         w = np.zeros(3) if angular_velocity is None else np.asarray(angular_velocity, float)
         v = np.zeros(3) if linear_velocity is None else np.asarray(linear_velocity, float)
-        self.coords_prev = self.coords - dt * velocity
-        self.q = self.deformer.q(self.coords)
-        self.q_prev = self.deformer.q(self.coords_prev) if velocity.any() else self.q.copy()
         if self.free:
-            self.rotation, self.translation = np.eye(3), self.origin.copy()
-            self.rotation_prev = rs.exp_rotation(-dt * w[None])[0]
-            self.translation_prev = self.translation - dt * v
+            R, c = np.eye(3), self.origin.copy()
         elif self.frame_motion is not None:
-            self.rotation, self.translation = self.frame_motion(self.time)
-            self.rotation_prev, self.translation_prev = self.frame_motion(self.time - dt)
+            R, c = self.frame_motion(self.time)
         else:
-            self.rotation, self.translation = np.eye(3), np.zeros(3)
-            self.rotation_prev, self.translation_prev = np.eye(3), np.zeros(3)
+            R, c = np.eye(3), np.zeros(3)
+        self.state = State(self.time, self.dt,
+                           integrators.Pose(coords, self.deformer.q(coords), R, c))
+        self.state.carried = self.scheme.start(self, velocity, w, v)
         self.iterations = 0
-        self._contact_checked = False                 # the first step checks the new start
-        if self.newmark:
-            self._start_newmark(velocity, w, v)
         if self._volumes is not None:
             self._watch(self._volumes.ratios(self.q))
 
-    def _start_newmark(self, s_dot, angular_velocity, linear_velocity):
-        """Newmark's state in generalised coordinates: v_s = s_dot and the acceleration a_s
-        consistent with the equation of motion; a free frame's world angular velocity and
-        acceleration and its centre's velocity and acceleration (spinning uniformly, falling
-        with g). The world fields are pushed forward from these each step (``_body_rates``,
-        ``_frame_rates``)."""
-        self._v_s, self._impulse = s_dot.copy(), np.zeros(self.num_coords)
-        self._impulse_q = np.zeros(self.basis_size)
-        if self.frame_motion is not None:            # carried along at the frame's velocity
-            R, c = self.frame_motion(self.time - self.dt)
-            self._frame_velocity = ((self.rotation - R) / self.dt,
-                                    (self.translation - c) / self.dt)
-        if self.free:
-            self._spin = np.array([np.asarray(angular_velocity, float), np.zeros(3)])
-            self._drift = np.array([np.asarray(linear_velocity, float), self.gravity])
-        J = self.deformer.q_jacobian(self.coords)
-        self._a_s = np.zeros(self.num_coords)
-        v_q, a_q = self._body_rates(J)                   # a_q = curvature alone while a_s = 0
-        if not (self.free or self.frame_motion is not None):
-            force = self._fixed_load(self.time)
-        else:
-            R = np.asarray(self.rotation, float)
-            R1, R2, _, c2 = self._frame_rates()
-            external = _Field.constant(self.gravity, self.basis_size)   # a free fall cancels
-            frame = _Field(R2, R2[:, :, None] * self.q + 2.0 * R1[:, :, None] * v_q, c2)
-            force = self._project(R, external - frame)
-        mass = J.T @ self.mass_matrix @ J
-        rhs = (J.T @ (force - self.mass_matrix @ (a_q + self.alpha * v_q))
-               - self.potential.evaluate(self.coords, 1)[1]
-               - self.beta * (self.potential.rest_hessian @ self._v_s))
-        self._a_s = scipy.linalg.solve(0.5 * (mass + mass.T), rhs, assume_a="pos")
-
-    def _body_rates(self, J=None):
-        """(v_q, a_q) (rB,): q_dot = J v_s and q_ddot = J a_s + kappa at the current state,
-        kappa = d^2 q/ds^2 (v_s, v_s) the curvature of the RS map along the motion.
-
-        Pushing forward from s keeps v and a tangent to the RS map: carried in q-space, their
-        components normal to it would ring undamped (the trapezoidal rule never damps them) and
-        feed energy into large rotations. Without J: by central differences of q(s), over
-        s +- dt v_s (J v_s and kappa, errors O(dt^2) like the scheme's) and s +- dt^2/4 a_s
-        (J a_s, the displacement a_s makes in x_hat): four q evaluations cost a fraction of one
-        Jacobian, and they are exact for a linear map.
-        """
-        s, q, v, a = self.coords, self.q, self._v_s, self._a_s
-        if J is not None:
-            v_q, a_q = J @ v, J @ a
-        else:
-            v_q, a_q = np.zeros(self.basis_size), np.zeros(self.basis_size)
-            if a.any():
-                eps = 0.25 * self.dt ** 2
-                a_q = (self.deformer.q(s + eps * a) - self.deformer.q(s - eps * a)) / (2 * eps)
-        if v.any():
-            ahead, behind = self.deformer.q(s + self.dt * v), self.deformer.q(s - self.dt * v)
-            a_q = a_q + (ahead - 2.0 * q + behind) / self.dt ** 2
-            if J is None:
-                v_q = (ahead - behind) / (2.0 * self.dt)
-        return v_q, a_q
-
-    def _frame_rates(self):
-        """(R', R'', c', c'') of the frame at the current time: a free frame's from its state;
-        a prescribed one moves at its secant velocity over each step, without acceleration
-        within it (``_follow_frame``)."""
-        R = np.asarray(self.rotation, float)
-        if self.free:
-            W, A = rs.skew(self._spin)
-            return W @ R, (A + W @ W) @ R, self._drift[0], self._drift[1]
-        R1, c1 = self._frame_velocity
-        return R1, np.zeros((3, 3)), c1, np.zeros(3)
-
-    def _follow_frame(self, R, c):
-        """A prescribed frame about to move to (R, c) over the next step: its velocity becomes
-        the secant over that step. A change of frame velocity is an impulse on the body: the
-        world momentum of its elastic part is kept (projected onto the reduced space in the
-        mass metric), so the body lags and swings. Keys sampled per frame (piecewise linear)
-        change velocity only at frames, and this is then exact; smooth motion gets its
-        fictitious forces as impulses (kick, then trapezoidal drift). The damping of that step
-        sees the velocity half way through the kick, so a steady acceleration gives the exact
-        static lag (the kick and the damping stay symmetric)."""
-        R_n = np.asarray(self.rotation, float)
-        R1, c1 = (R - R_n) / self.dt, (c - self.translation) / self.dt
-        old_R1, old_c1 = self._frame_velocity
-        self._frame_velocity = (R1, c1)
-        dR, dc = R1 - old_R1, c1 - old_c1
-        self._impulse, self._impulse_q = np.zeros(self.num_coords), np.zeros(self.basis_size)
-        if not (dR.any() or dc.any()):
-            return
-        J = self.deformer.q_jacobian(self.coords)
-        jump = self._project(R_n, _Field(dR, dR[:, :, None] * self.q, dc))
-        mass = J.T @ self.mass_matrix @ J
-        self._impulse = -scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ jump, assume_a="pos")
-        self._impulse_q = J @ self._impulse
-        self._v_s = self._v_s + self._impulse
-
-    def _project(self, R, field):
-        """B^T M R^T F (rB,) for a world field F (contracted from the mass moments)."""
-        RA = R.T @ field.A
-        RZ = np.einsum("il,ija->lja", R, field.Z)
-        return (RA.reshape(-1) @ self.H0.reshape(9, -1) + np.einsum("ljab,ljb->a", self.H1, RZ)
-                + self.first_moment_B.T @ (R.T @ field.d))
+    def fixed_load(self, t):
+        """(rB,) B^T M g plus the external force at time t [s] (fixed frame)."""
+        load = self.moments.first_moment_B.T @ self.gravity
+        if self.external_force is not None:
+            load = load + np.asarray(self.external_force(t), dtype=np.float64)
+        return load
 
     # -- one frame ----------------------------------------------------------------------------
 
@@ -845,11 +291,12 @@ class Simulation:
 
         With ``tets``, each internal step is checked for inverted tets and a non-finite energy
         (an RS strain past the volume barrier of ``inversion``, e.g. from a predictor that
-        overshot); a failing step is undone (``_snapshot`` / ``_restore``: state, Newmark
-        rates, frame state, time) and retaken as two steps of half the length, recursively
-        down to dt / 2^MAX_STEP_SPLITS; past that ``InversionError``. Why halving: the
-        predictor s_n + dt v_s and every Newton iterate move less, so the barrier's line search
-        can hold them, and most of the frame keeps its nominal dt.
+        overshot); a failing step is undone (the ``State`` copied before it is restored) and
+        retaken as two steps of half the length, recursively down to dt / 2^MAX_STEP_SPLITS;
+        past that ``InversionError``. Why halving: the predictor s_n + dt v_s and every Newton
+        iterate move less, so the barrier's line search can hold them, and most of the frame
+        keeps its nominal dt. A step with contact none of whose start guesses is outside the
+        colliders is retaken the same way (``ContactError`` past the smallest).
         """
         total = 0
         frame = int(round((self.time - self._start_time) / self.h)) + 1
@@ -865,12 +312,12 @@ class Simulation:
         """One internal step of length dt [s], retaken in halves if it inverts or if no start
         guess of it is outside the colliders (a fast collider or keyed frame; ``step``)."""
         if self._volumes is None and self.contact is None:
-            return self._newmark_step() if self.newmark else self._euler_step()
-        snapshot = self._snapshot()
+            return self._take_step()
+        snapshot = self.state.copy()
         self._set_step(dt)
         blocked = None
         try:
-            iterations = self._newmark_step() if self.newmark else self._euler_step()
+            iterations = self._take_step()
         except StartsInsideError:
             raise
         except ContactError as exc:
@@ -883,7 +330,7 @@ class Simulation:
                 self._watch(ratios)
                 return iterations
             self._watch(ratios, keep=True)     # the retried halves see the tets that turned
-        self._restore(snapshot)
+        self.state = snapshot
         if splits >= MAX_STEP_SPLITS:
             if blocked is not None:
                 raise blocked
@@ -909,567 +356,74 @@ class Simulation:
         if watch is not None:
             watch(ratios, keep)
 
-    def _snapshot(self):
-        """The whole integrator state: every attribute (a step rebinds its state attributes,
-        so attributes added by other features are covered too), arrays copied so that even an
-        in-place update could not leak into the restored state. Shared objects (deformer,
-        potential) are kept by reference: they hold no step state."""
-        return {name: (value.copy() if isinstance(value, np.ndarray) else value)
-                for name, value in self.__dict__.items()}
-
-    def _restore(self, snapshot):
-        self.__dict__.update(snapshot)
-
     def _set_step(self, dt):
-        """Make the internal step dt [s]: the stiffness damping's 1/dt factor, and implicit
-        Euler's history (backward differences over one step) rescaled so that its velocities
-        are kept. Newmark carries velocities and accelerations, which do not depend on dt."""
-        if dt == self.dt:
-            return
-        ratio = dt / self.dt
-        if not self.newmark:
-            self.coords_prev = self.coords - ratio * (self.coords - self.coords_prev)
-            self.q_prev = self.deformer.q(self.coords_prev)     # on the RS map, as set_state
-            self.translation_prev = (self.translation
-                                     - ratio * (self.translation - self.translation_prev))
-            R = np.asarray(self.rotation, float)
-            turn = Rotation.from_matrix(np.asarray(self.rotation_prev, float) @ R.T).as_rotvec()
-            self.rotation_prev = Rotation.from_rotvec(ratio * turn).as_matrix() @ R
-        self.dt = dt
-        scale = (2.0 if self.newmark else 1.0) * self.beta / dt      # as in the constructor
-        self._damping = scale * self.potential.rest_hessian
+        """Make the internal step dt [s], what the scheme carries rescaled to it."""
+        if dt != self.state.dt:
+            self.state.carried = self.scheme.rescaled(self, dt)
+            self.state.dt = dt
 
-    def _advance(self, s, q, R, c):
-        self.coords_prev, self.q_prev = self.coords, self.q
-        self.rotation_prev, self.translation_prev = self.rotation, self.translation
-        self.coords, self.q, self.rotation, self.translation = s, q, R, c
-        self.time += self.dt
-
-    # -- Newmark average acceleration -----------------------------------------------------------
-
-    def _newmark_step(self):
-        """One trapezoidal step dt (module docstring); returns the Newton iterations."""
-        dt = self.dt
-        if self.frame_motion is not None:
-            R, c = (np.asarray(x, float) for x in self.frame_motion(self.time + dt))
-            self._follow_frame(R, c)
-        v_q, a_q = self._body_rates()
-        v_damped = self._v_s - 0.5 * self._impulse       # the velocity the damping sees
-        damped_q = v_q - 0.5 * self._impulse_q
-        if self.frame_motion is not None or self.free:
-            target = self._newmark_target(v_q, a_q)
-        if self.frame_motion is not None:
-            model = self._newmark_moving_inertia(R, c, target, damped_q)
-        elif self.free:
-            model = self._newmark_free_inertia(target, damped_q)
-        else:
-            R, c = self.rotation, self.translation
-            model = self._newmark_fixed_inertia(v_q, a_q, damped_q)
-        damping = (self._damping, self.beta * (self.potential.rest_hessian @ v_damped))
-        guess = self.coords + dt * self._v_s
+    def _take_step(self):
+        """One internal step dt from the current state; returns the Newton iterations."""
+        state = self.state
+        end = self._end_frame()
+        plan = self.scheme.plan(self, end)
+        model = self._inertia(plan, end)
         if self.contact is None:
-            s, q, iterations = self._minimise(model, guess, damping, self.max_iterations)
-            if self.free:
-                R, c = self._best_frame(model, target, q)
+            s, q, iterations = self.solver.minimise(model, plan.guess, plan.damping)
+            R, c = frames.best_frame(self.moments, model, plan.target, q) if self.free else end
+        elif self.free:
+            self._begin_contact(plan)
+            start = self.contact.feasible(self._framed_guesses(model, plan), self.time)
+            s, q, R, c, iterations = self.solver.minimise_framed(
+                self._framed_inertia(plan), start, plan.damping, self.contact.framed_terms)
         else:
-            self._begin_contact(v_q)
-            if self.free:
-                framed = _FramedInertia(self, 4.0 / dt ** 2, target,
-                                        *self._mass_damping_terms(damped_q))
-                s, q, R, c, iterations = self._minimise_framed(
-                    framed, self._framed_guesses(model, target, guess), damping,
-                    self.max_iterations)
-            else:
-                s, q, iterations = self._minimise_with_contact(model, R, c, guess, damping)
-        if self.free:
-            turn = Rotation.from_matrix(R @ np.asarray(self.rotation, float).T).as_rotvec()
-            self._spin = _trapezoidal(self._spin, turn, dt)
-            self._drift = _trapezoidal(self._drift, c - self.translation, dt)
-        self._v_s, self._a_s = _trapezoidal(np.array([self._v_s, self._a_s]),
-                                            s - self.coords, dt)
-        if self.contact is not None and STABILISED_CONTACT:
-            self._drop_contact_acceleration(s, q, R, c)
-        self._advance(s, q, R, c)
+            self._begin_contact(plan)
+            R, c = end
+            guesses = self.contact.guesses(state, plan.guess, R, c)
+            start, _, _ = self.contact.feasible(guesses, self.time)
+            s, q, iterations = self.solver.minimise(ContactInertia(model, self.contact, R, c),
+                                                    start, plan.damping)
+        state.carried = self.scheme.advance(self, plan, s, q, R, c)
+        state.pose = integrators.Pose(s, q, R, c)
+        state.time += state.dt
         return iterations
 
-    def _drop_contact_acceleration(self, s, q, R, c):
-        """Contact-stabilised Newmark (Deuflhard, Krause and Ertel 2008): the contact force of
-        the step (barrier, friction, damping) changes the velocity through the trapezoidal
-        rule, but is left out of the acceleration carried into the next step,
-        a_{n+1} <- a_{n+1} - M^-1 f_c, f_c = -dE_c/dz, M the generalised mass of the unknowns
-        z (s, or (s, phi, u) of a free body: J^T M_B J or T^T mass T). Carried, a one-step
-        impact kicks the next step again (the barrier's acceleration is huge and the
-        trapezoidal rule never damps it): a soft cube dropped 1 m onto an undamped floor at
-        one step per frame gained 1.3 m g h within 2 s (``test_collisions``); left out, the
-        next step predicts without it and the barrier acts again only if still needed. At rest the
-        barrier then carries twice the weight at the step's end (its mean over the step is the
-        weight), so bodies rest a little deeper in the band."""
-        _, g, _ = self._contact_terms(q, R, c, 1, self.free)
-        if not g.any():
-            return
-        m, rB = self.num_coords, self.basis_size
-        J = self.deformer.q_jacobian(s)
+    def _begin_contact(self, plan):
+        """The contact's ``begin_step`` at t_n, with the scheme's sample velocities."""
+        self.contact.begin(self.state, lambda x, start: self.scheme.sample_velocities(
+            self, plan, x, start))
+
+    def _end_frame(self):
+        """The frame (R, c) at the step's end: a keyed one's motion, a fixed one's (I, 0);
+        None for a free one (solved with the step)."""
         if self.free:
-            T = np.zeros((rB + 6, m + 6))
-            T[:rB, :m] = J
-            T[rB:, m:] = np.eye(6)
-            mass = T.T @ _FramedInertia.mass_metric(self, q, R) @ T
-            change = scipy.linalg.solve(0.5 * (mass + mass.T), T.T @ g, assume_a="pos")
-            self._spin[1] = self._spin[1] + change[m:m + 3]
-            self._drift[1] = self._drift[1] + change[m + 3:]
-        else:
-            mass = J.T @ self.mass_matrix @ J
-            change = scipy.linalg.solve(0.5 * (mass + mass.T), J.T @ g, assume_a="pos")
-        self._a_s = self._a_s + change[:m]
+            return None
+        if self.frame_motion is not None:
+            return tuple(np.asarray(x, float) for x in self.frame_motion(self.time + self.dt))
+        return self.rotation, self.translation
 
-    def _best_frame(self, model, target, q):
-        """A free frame (R, c) for q: Procrustes rotation, centre of mass on x_hat's."""
-        R, _ = model.rotation(q)
-        c = (np.einsum("ija,ja->i", target.Z, self._com_per_q) + target.d
-             - R @ (self._com_per_q @ q))
-        return R, c
+    def _inertia(self, plan, end):
+        """The step's inertia and mass damping in q in this body's frame (``frames``)."""
+        if self.free:
+            return frames.free_inertia(self.moments, plan.weight, plan.target, plan.mass_damping)
+        if self.frame_motion is not None:
+            return frames.keyed_inertia(self.moments, plan.weight, plan.target, *end,
+                                        plan.mass_damping)
+        return frames.fixed_inertia(self.moments, plan.weight, plan.target, plan.mass_damping,
+                                    self.fixed_load(self.time + self.dt))
 
-    def _framed_guesses(self, model, target, guess):
+    def _framed_inertia(self, plan):
+        """A free body's inertia with its frame explicit (with contact)."""
+        k, linear = plan.mass_damping
+        return frames.FramedInertia(self.moments, plan.weight, plan.target,
+                                    k * self.moments.mass_matrix, linear)
+
+    def _framed_guesses(self, model, plan):
         """Start guesses (s, R, c) of a free body with contact: the predictor in its best
         frame, else the state at t_n (outside the colliders by the previous step)."""
-        R, c = self._best_frame(model, target, self.deformer.q(guess))
-        return [(guess, R, c), (self.coords, np.asarray(self.rotation, float),
-                                np.asarray(self.translation, float))]
-
-    def _minimise_with_contact(self, model, R, c, guess, damping):
-        """``_minimise`` of a pinned body's step with its contact in the known frame (R, c),
-        from the first start guess outside the colliders (``_contact_guesses``)."""
-        R, c = np.asarray(R, float), np.asarray(c, float)
-        start, _, _ = self._feasible_guess(self._contact_guesses(guess, R, c), False)
-        return self._minimise(_ContactInertia(model, self, R, c), start, damping,
-                              self.max_iterations)
-
-    def _contact_guesses(self, guess, R, c):
-        """Start guesses (s, R, c) of a step with contact in the known end frame (R, c), made
-        lazily: the predictor, s_n, then both plus ``_holding_deformation``. A keyed frame or a
-        rig that carries the body towards a collider can put both of the first inside it when
-        the body already touches it (a flicked ear pressed on a box while the creature lands);
-        the held deformation keeps the touching samples where they were at t_n."""
-        yield guess, R, c
-        yield self.coords, R, c
-        hold = self._holding_deformation(R, c)
-        if hold is not None:
-            yield guess + hold, R, c
-            yield self.coords + hold, R, c
-
-    def _holding_deformation(self, R, c, rounds=HOLD_ROUNDS):
-        """ds (m,) that holds the contact samples near a collider at the step's end where they
-        were at t_n, to first order, while the frame (R, c) and the placement move the body:
-        min |G ds - (x_n - x)|^2 + mu ds^T K ds over the held samples, x their end positions
-        with s_n, G = dx/ds = R A rows J (3 per sample, m), K the rest Hessian, mu = HOLD_MU
-        tr(G^T G) / tr(K) (the least elastic energy among near-equal fits). Samples the
-        correction moves into a collider join the held ones, up to ``rounds`` fits. None if no
-        sample is near a collider, or if the contact has no ``proximity`` (it is optional)."""
-        proximity = getattr(self.contact, "proximity", None)
-        if proximity is None:
-            return None
-        q = self.q
-        start = self._sample_positions(q, self.rotation, self.translation,
-                                       self._placed_at(self.time))
-        end = self._sample_positions(q, R, c, self._end_placement)
-        held = proximity(end)[1]
-        if not held.any():
-            return None
-        rows = self._sample_rows.reshape(-1, 3, self.basis_size)
-        to_world = np.broadcast_to(R, (len(rows), 3, 3)) if self._end_placement is None \
-            else R @ self._end_placement[0]
-        G = np.einsum("kij,kja->kia", to_world, rows) @ self.deformer.q_jacobian(self.coords)
-        K = self.potential.rest_hessian
-        for _ in range(rounds):
-            Gh = G[held].reshape(-1, self.num_coords)
-            normal = Gh.T @ Gh
-            mu = HOLD_MU * np.trace(normal) / max(np.trace(K), 1e-300)
-            ds = scipy.linalg.solve(normal + mu * K, Gh.T @ (start - end)[held].ravel(),
-                                    assume_a="sym")
-            moved = self._sample_positions(self.deformer.q(self.coords + ds), R, c,
-                                           self._end_placement)
-            inside = proximity(moved)[0] & ~held
-            if not inside.any():
-                break
-            held |= inside
-        return ds
-
-    def _newmark_target(self, v_q, a_q):
-        """x_hat = x_n + dt v_n + dt^2/4 (a_n + g) as a world field, v and a pushed forward:
-        v = R' Y + R B v_q + c', a = R'' Y + 2 R' B v_q + R B a_q + c''."""
-        dt, q = self.dt, self.q
-        R = np.asarray(self.rotation, float)
-        R1, R2, c1, c2 = self._frame_rates()
-        x = _Field.position(R, q, np.asarray(self.translation, float))
-        v = _Field(R1, R1[:, :, None] * q + R[:, :, None] * v_q, c1)
-        a = _Field(R2, R2[:, :, None] * q + 2.0 * R1[:, :, None] * v_q + R[:, :, None] * a_q,
-                   c2 + self.gravity)
-        return x + dt * v + (0.25 * dt * dt) * a
-
-    def _mass_damping_terms(self, v_q):
-        """Newmark's alpha/dt |q - q_n|^2_M - alpha (M v_q).q as (matrix, linear term)."""
-        M, k = self.mass_matrix, 2.0 * self.alpha / self.dt
-        return k * M, -(M @ (k * self.q + self.alpha * v_q))
-
-    def _newmark_fixed_inertia(self, v_q, a_q, damped_q):
-        """R = I, c = 0: 2/dt^2 |q - q_hat|^2_M - B^T M g.q + mass damping, with
-        q_hat = q_n + dt v_q + dt^2/4 a_q."""
-        dt, M = self.dt, self.mass_matrix
-        q_hat = self.q + dt * v_q + 0.25 * dt * dt * a_q
-        _, linear = self._mass_damping_terms(damped_q)
-        b = (4.0 / dt ** 2) * (M @ q_hat) - linear + self._fixed_load(self.time + dt)
-        return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, M, b)
-
-    def _fixed_load(self, t):
-        """(rB,) B^T M g plus the external force at time t [s] (fixed frame)."""
-        load = self.first_moment_B.T @ self.gravity
-        if self.external_force is not None:
-            load = load + np.asarray(self.external_force(t), dtype=np.float64)
-        return load
-
-    def _newmark_moving_inertia(self, R, c, target, v_q):
-        """Prescribed frame (R, c) at t_{n+1}: 2/dt^2 |Y(q) - R^T (x_hat - c)|^2_M + damping."""
-        dt = self.dt
-        shifted = target - _Field.constant(c, self.basis_size)
-        _, linear = self._mass_damping_terms(v_q)
-        b = (4.0 / dt ** 2) * (self._project(R, shifted) - self._trace_H0) - linear
-        return _QuadraticInertia(4.0 / dt ** 2 + 2.0 * self.alpha / dt, self.mass_matrix, b)
-
-    def _newmark_free_inertia(self, target, v_q):
-        """Free body: K(q) = sum m (x_hat - x_hat_cm)(Y(q) - Y_cm)^T = K0 + Kq q from the
-        field's (A, Z) and the mass moments; weight 4/dt^2."""
-        A, Z = target.A, target.Z
-        K0 = A @ self.S0 + np.einsum("ija,jla->il", Z, self.H0)
-        Kq = np.einsum("ij,ljb->ilb", A, self.H0) + np.einsum("ija,jlab->ilb", Z, self._H1c)
-        damping, linear = self._mass_damping_terms(v_q)
-        return _FreeInertia(4.0 / self.dt ** 2, self._centred_mass, damping, linear,
-                            self._trace_H0, K0, Kq.reshape(9, -1))
-
-    # -- implicit Euler -------------------------------------------------------------------------
-
-    def _euler_step(self):
-        """One implicit Euler step dt; returns the Newton iterations."""
-        if self.frame_motion is not None:
-            R, c = self.frame_motion(self.time + self.dt)
-            model = self._moving_inertia(np.asarray(R, float), np.asarray(c, float))
-        elif self.free:
-            model = self._free_inertia()
-        else:
-            R, c = self.rotation, self.translation
-            model = self._fixed_inertia()
-        predictor = 2.0 * self.coords - self.coords_prev
-        damping = (self._damping, np.zeros(self.num_coords))
-        if self.contact is None:
-            s, q, iterations = self._minimise(model, predictor, damping, self.max_iterations)
-            if self.free:
-                R, _ = model.rotation(q)
-                c = self._free_translation(R, q)
-        else:
-            self._begin_contact(None)
-            if self.free:
-                q_guess = self.deformer.q(predictor)
-                R, _ = model.rotation(q_guess)
-                guesses = [(predictor, R, self._free_translation(R, q_guess)),
-                           (self.coords, np.asarray(self.rotation, float),
-                            np.asarray(self.translation, float))]
-                s, q, R, c, iterations = self._minimise_framed(
-                    self._euler_framed_inertia(), guesses, damping, self.max_iterations)
-            else:
-                s, q, iterations = self._minimise_with_contact(model, R, c, predictor, damping)
-        self._advance(s, q, R, c)
-        return iterations
-
-    def _fixed_inertia(self):
-        """R = I, c = 0: b = M_B (2 q_n - q_{n-1}) / dt^2 + B^T M g + alpha/dt M_B q_n."""
-        h, M = self.dt, self.mass_matrix
-        b = (M @ ((2.0 + self.alpha * h) * self.q - self.q_prev)) / (h * h)
-        b += self._fixed_load(self.time + h)
-        return _QuadraticInertia(1.0 / (h * h) + self.alpha / h, M, b)
-
-    def _moving_inertia(self, R, c):
-        """Prescribed frame (R, c) at t_{n+1}: target Y~ = R^T (x_hat - c) in the body frame.
-
-        Y~_k = C_n Y_n,k + C_p Y_{n-1},k + e with C_n = 2 R^T R_n, C_p = -R^T R_{n-1},
-        e = R^T (2 c_n - c_{n-1} + dt^2 g - c); B^T M (Y~ - Xb) is contracted from H0, H1.
-        """
-        h = self.dt
-        Cn = 2.0 * R.T @ self.rotation
-        Cp = -R.T @ self.rotation_prev
-        e = R.T @ (2.0 * self.translation - self.translation_prev + h * h * self.gravity - c)
-        contract = lambda C, A: C.reshape(-1) @ A.reshape(9, -1)               # noqa: E731
-        rhs = (contract(Cn + Cp - np.eye(3), self.H0) + contract(Cn, self.H1 @ self.q)
-               + contract(Cp, self.H1 @ self.q_prev) + self.first_moment_B.T @ e)
-        b = rhs / (h * h) + (self.alpha / h) * (self.mass_matrix @ self.q)
-        return _QuadraticInertia(1.0 / (h * h) + self.alpha / h, self.mass_matrix, b)
-
-    def _free_inertia(self):
-        """Free body: K(q) = sum_p A_p P_p(q), A_n = 2 R_n, A_{n-1} = -R_{n-1}, with the
-        centred cross moments P_p(q) = sum m Y'_p Y'(q)^T (linear in q)."""
-        K0, Kq = np.zeros((3, 3)), np.zeros((3, 3, self.basis_size))
-        for A, qp in ((2.0 * self.rotation, self.q), (-self.rotation_prev, self.q_prev)):
-            const = self.S0 + self.H0 @ qp                                     # (3, 3)
-            lin = np.swapaxes(self.H0, 0, 1) + qp @ self._H1c                  # (3, 3, rB)
-            K0 += A @ const
-            Kq += np.einsum("ki,ijb->kjb", A, lin)
-        h, M = self.dt, self.mass_matrix
-        return _FreeInertia(1.0 / h ** 2, self._centred_mass, (self.alpha / h) * M,
-                            -(self.alpha / h) * (M @ self.q), self._trace_H0, K0,
-                            Kq.reshape(9, -1))
-
-    def _euler_framed_inertia(self):
-        """Free body with contact: 1/(2 dt^2) |x - x_hat|^2_M, x_hat = 2 x_n - x_{n-1} + dt^2 g,
-        with the frame explicit (``_FramedInertia``), plus mass damping alpha/(2 dt) |q - q_n|^2_M."""
-        h, M, rB = self.dt, self.mass_matrix, self.basis_size
-        target = (2.0 * _Field.position(np.asarray(self.rotation, float), self.q,
-                                        np.asarray(self.translation, float))
-                  - _Field.position(np.asarray(self.rotation_prev, float), self.q_prev,
-                                    np.asarray(self.translation_prev, float))
-                  + _Field.constant(h * h * self.gravity, rB))
-        return _FramedInertia(self, 1.0 / h ** 2, target, (self.alpha / h) * M,
-                              -(self.alpha / h) * (M @ self.q))
-
-    def _free_translation(self, R, q):
-        """c = centre of mass of x_hat - R (centre of mass of Y(q))."""
-        D = self._com_per_q
-        x_hat_cm = (2.0 * self.rotation @ (D @ self.q) - self.rotation_prev @ (D @ self.q_prev)
-                    + 2.0 * self.translation - self.translation_prev
-                    + self.dt * self.dt * self.gravity)
-        return x_hat_cm - R @ (D @ q)
-
-    # -- contact --------------------------------------------------------------------------------
-
-    def _setup_contact(self, contact):
-        """Keep the samples' rest positions relative to the origin and their rows (k, 3, rB)."""
-        self.contact = contact
-        self._contact_checked = False
-        if contact is None:
-            return
-        expected = 2.0 if self.newmark else 1.0             # the contact's end-velocity factor
-        if getattr(contact, "alpha", expected) != expected:
-            raise ValueError(f"the contact was built for another integrator than {self.integrator!r}")
-        k = int(contact.num_samples)
-        rows = np.asarray(contact.rows, dtype=np.float64)
-        if rows.shape != (3 * k, self.basis_size):
-            raise ValueError(f"contact rows have shape {rows.shape}, expected "
-                             f"{(3 * k, self.basis_size)} (3 rows per sample over the basis B)")
-        self._sample_rest = np.asarray(contact.points, dtype=np.float64).reshape(k, 3) - self.origin
-        self._sample_rows = rows
-
-    def _placed_at(self, t):
-        """The samples' placement (A (k, 3, 3), b (k, 3)) at time t, or None (identity)."""
-        if self._placement is None:
-            return None
-        A, b = self._placement(t)
-        return np.asarray(A, dtype=np.float64), np.asarray(b, dtype=np.float64)
-
-    def _sample_positions(self, q, R, c, placement=None):
-        """(k, 3) world positions R (A (P - origin + rows q) + b) + c of the contact samples,
-        placement (A, b) or None for the identity."""
-        body = self._sample_rest + (self._sample_rows @ q).reshape(-1, 3)
-        if placement is not None:
-            body = np.einsum("kij,kj->ki", placement[0], body) + placement[1]
-        return body @ np.asarray(R, dtype=np.float64).T + np.asarray(c, dtype=np.float64)
-
-    def _begin_contact(self, v_q):
-        """``contact.begin_step`` at t_n with the samples' world positions and velocities:
-        Newmark's pushed-forward v = R' Y + R B v_q + c' (v_q from ``_body_rates``) plus a
-        placement's secant rate over the step, implicit Euler's backward difference. The first
-        step checks the start (``check_start``). Keeps the placement at the step's end."""
-        R, c = np.asarray(self.rotation, float), np.asarray(self.translation, float)
-        start = self._placed_at(self.time)
-        self._end_placement = self._placed_at(self.time + self.dt)
-        x = self._sample_positions(self.q, R, c, start)
-        if not self._contact_checked:
-            try:
-                self.contact.check_start(x, self.time)
-            except ValueError as exc:
-                raise StartsInsideError(str(exc)) from None
-            self._contact_checked = True
-        if self.newmark:
-            rate = (self._sample_rows @ v_q).reshape(-1, 3)
-            if start is not None:     # fixed frame (R = I, c = 0): the placement's own rate
-                moved = self._sample_positions(self.q, R, c, self._end_placement)
-                rate = np.einsum("kij,kj->ki", start[0], rate) + (moved - x) / self.dt
-            v = rate @ R.T
-            if self.free or self.frame_motion is not None:
-                R1, _, c1, _ = self._frame_rates()
-                v += (x - c) @ (R1 @ R.T).T + c1
-        else:
-            v = (x - self._sample_positions(self.q_prev, self.rotation_prev,
-                                            self.translation_prev,
-                                            self._placed_at(self.time - self.dt))) / self.dt
-        self.contact.begin_step(self.time, self.dt, x, v)
-
-    def _contact_terms(self, q, R, c, order, framed):
-        """Contact value [J], gradient and Gauss-Newton Hessian in q (rB,), or in (q, phi, u)
-        (rB + 6,) for a free frame R = exp(skew(phi)) R, c + u at phi = u = 0.
-
-        dx_p/dq = R A_p rows_p (A_p the step end's sample placement, I without one),
-        dx_p/dphi = -skew(x_p - c), dx_p/du = I; the Hessian
-        sum_p J_p^T H_p J_p only over samples whose block H_p is nonzero."""
-        A = None if self._end_placement is None else self._end_placement[0]
-        r = self._sample_positions(q, R, c, self._end_placement) - c
-        value, g, H = self.contact.evaluate(r + c, order)
-        if order == 0 or not np.isfinite(value):
-            return value, None, None
-        pulled = g @ R if A is None else np.einsum("kij,ki->kj", A, g @ R)     # A^T R^T g
-        grad = self._sample_rows.T @ pulled.ravel()
-        if framed:
-            grad = np.concatenate([grad, np.cross(r, g).sum(axis=0), g.sum(axis=0)])
-        if order < 2:
-            return value, grad, None
-        n = len(grad)
-        active = np.flatnonzero(np.abs(H).reshape(len(H), 9).max(axis=1) > 0.0)
-        if len(active) == 0:
-            return value, grad, np.zeros((n, n))
-        rows = self._sample_rows.reshape(-1, 3, self.basis_size)[active]
-        to_world = np.broadcast_to(R, (len(active), 3, 3)) if A is None else R @ A[active]
-        Jp = np.einsum("kij,kja->kia", to_world, rows)                        # (a, 3, rB)
-        if framed:
-            eye = np.broadcast_to(np.eye(3), (len(active), 3, 3))
-            Jp = np.concatenate([Jp, -rs.skew(r[active]), eye], axis=2)
-        HJ = H[active] @ Jp
-        return value, grad, Jp.reshape(-1, n).T @ HJ.reshape(-1, n)
-
-    def _feasible_guess(self, guesses, framed):
-        """The first of (s, R, c) guesses whose samples are outside every collider."""
-        for s, R, c in guesses:
-            q = self.deformer.q(s)
-            x = self._sample_positions(q, R, c, self._end_placement)
-            if np.isfinite(self.contact.evaluate(x, 0)[0]):
-                return s, R, c
-        raise ContactError(f"at t = {self.time:.4g} s a collider or the keyed motion moved into "
-                           "the body within one step; add substeps")
-
-    def _framed_objective(self, model, s, q, R, c, damping):
-        value = self._contact_terms(q, R, c, 0, True)[0]
-        if not np.isfinite(value):
-            return np.inf
-        ds = s - self.coords
-        matrix, force = damping
-        value += model.value(q, R, c) + self.potential.evaluate(s, 0)[0]
-        return value + float(ds @ (0.5 * (matrix @ ds) - force))
-
-    def _minimise_framed(self, model, guesses, damping, max_iterations):
-        """Newton / line search on (s, phi, u) of a free body with contact (``_FramedInertia``):
-        re-linearised at each iterate (R = exp(skew(phi)) R_it, c = c_it + u). As ``_minimise``:
-        Gauss-Newton first, the exact Hessian (inertia's and the RS map's curvature) on later
-        iterations that still move. Returns (s, q, R, c, iterations)."""
-        s, R, c = self._feasible_guess(guesses, True)
-        q = self.deformer.q(s)
-        f = self._framed_objective(model, s, q, R, c, damping)
-        iterations = 0
-        for iterations in range(1, max_iterations + 1):
-            grad, gauss_newton, exact, moved = self._framed_system(model, s, q, R, c, damping)
-            if not grad.any():
-                break
-            step = _newton_step(gauss_newton, grad)
-            small = moved(step) <= self._step_tol2
-            if not small and iterations > 1:
-                step = _newton_step(exact(), grad, step)
-            trial = self._framed_line_search(model, s, R, c, f, step, float(grad @ step), damping)
-            if trial is None:                      # no decrease possible: at round-off level
-                break
-            s, q, R, c, f = trial
-            if small:
-                break
-        return s, q, R, c, iterations
-
-    def _framed_system(self, model, s, q, R, c, damping):
-        """The step objective's derivatives in (s, phi, u) (m + 6,) at phi = u = 0: gradient,
-        Gauss-Newton Hessian, a callable giving the exact one (inertia and RS map curvature;
-        contact stays Gauss-Newton) and a callable giving a step's squared mass norm [kg m^2].
-        q = q(s) enters through T = diag(J, I6)."""
-        m, rB = self.num_coords, self.basis_size
-        T = np.zeros((rB + 6, m + 6))
-        T[:rB, :m] = self.deformer.q_jacobian(s)
-        T[rB:, m:] = np.eye(6)
-        g, exact, gauss_newton, mass = model.derivatives(q, R, c)
-        _, gc, Hc = self._contact_terms(q, R, c, 2, True)
-        g = g + gc
-        _, gV, HV = self.potential.evaluate(s, 2)
-        grad = T.T @ g
-        grad[:m] += gV + damping[0] @ (s - self.coords) - damping[1]
-        own = np.zeros((m + 6, m + 6))
-        own[:m, :m] = HV + damping[0]
-
-        def exact_hessian():
-            full = T.T @ (exact + Hc) @ T + own
-            if self._geometric is not None:
-                full[:m, :m] += self._geometric(s, g[:rB])
-            return full
-
-        def moved(step):
-            z = T @ step
-            return float(z @ (mass @ z))
-        return grad, T.T @ (gauss_newton + Hc) @ T + own, exact_hessian, moved
-
-    def _framed_line_search(self, model, s, R, c, f, step, slope, damping):
-        """Backtracking Armijo along (s + a ds, exp(a skew(dphi)) R, c + a du)."""
-        m, alpha = self.num_coords, 1.0
-        for _ in range(MAX_HALVINGS):
-            s_try = s + alpha * step[:m]
-            R_try = rs.exp_rotation(alpha * step[None, m:m + 3])[0] @ R
-            c_try = c + alpha * step[m + 3:]
-            q_try = self.deformer.q(s_try)
-            f_try = self._framed_objective(model, s_try, q_try, R_try, c_try, damping)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
-                return s_try, q_try, R_try, c_try, f_try
-            alpha *= 0.5
-        return None
-
-    # -- Newton with line search --------------------------------------------------------------
-
-    def _objective(self, model, s, q, damping):
-        ds = s - self.coords
-        matrix, force = damping
-        value = model.evaluate(q, 0)[0] + self.potential.evaluate(s, 0)[0]
-        return value + float(ds @ (0.5 * (matrix @ ds) - force))
-
-    def _minimise(self, model, s, damping, max_iterations):
-        """Newton / line search on s from the guess s; returns (s, q(s), iterations).
-
-        damping: (D (m, m), f (m,)), the stiffness-damping potential 1/2 ds^T D ds - f.ds in
-        ds = s - s_n (D = (beta/dt) K0 or 2 beta/dt K0, f = 0 or beta K0 v_s).
-        """
-        q = self.deformer.q(s)
-        f = self._objective(model, s, q, damping)
-        iterations = 0
-        for iterations in range(1, max_iterations + 1):
-            J = self.deformer.q_jacobian(s)
-            _, gq, Hq = model.evaluate(q, 2)
-            _, gV, HV = self.potential.evaluate(s, 2)
-            grad = J.T @ gq + gV + damping[0] @ (s - self.coords) - damping[1]
-            if not grad.any():
-                break
-            gauss_newton = J.T @ (Hq @ J) + HV + damping[0]
-            step = _newton_step(gauss_newton, grad)
-            moved = J @ step
-            small = float(moved @ (self.mass_matrix @ moved)) <= self._step_tol2
-            if not small and iterations > 1 and self._geometric is not None:
-                # Gauss-Newton was not enough: its convergence is only linear here, so take
-                # the true Newton step (kept Gauss-Newton if that Hessian is indefinite).
-                step = _newton_step(gauss_newton + self._geometric(s, gq), grad, step)
-            s_new, q_new, f_new = self._line_search(model, s, f, step, float(grad @ step),
-                                                    damping)
-            if s_new is None:                      # no decrease possible: at round-off level
-                break
-            s, q, f = s_new, q_new, f_new
-            if small:
-                break
-        return s, q, iterations
-
-    def _line_search(self, model, s, f, step, slope, damping):
-        """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None)."""
-        alpha = 1.0
-        for _ in range(MAX_HALVINGS):
-            s_try = s + alpha * step
-            q_try = self.deformer.q(s_try)
-            f_try = self._objective(model, s_try, q_try, damping)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
-                return s_try, q_try, f_try
-            alpha *= 0.5
-        return None, None, None
+        R, c = frames.best_frame(self.moments, model, plan.target, self.deformer.q(plan.guess))
+        return [(plan.guess, R, c), (self.coords, np.asarray(self.rotation, float),
+                                     np.asarray(self.translation, float))]
 
     # -- statics, runs, energy ----------------------------------------------------------------
 
@@ -1484,17 +438,16 @@ class Simulation:
         """
         if self.free:
             raise ValueError("a free body has no static equilibrium under gravity")
-        b = self.first_moment_B.T @ (self.rotation.T @ self.gravity)
+        pose, m = self.state.pose, self.num_coords
+        b = self.moments.first_moment_B.T @ (pose.rotation.T @ self.gravity)
         if self.external_force is not None:
             b = b + np.asarray(self.external_force(self.time), dtype=np.float64)
-        model = _QuadraticInertia(0.0, self.mass_matrix, b)
-        guess = np.zeros(self.num_coords) if s is None else np.asarray(s, dtype=np.float64)
-        no_damping = (np.zeros((self.num_coords, self.num_coords)), np.zeros(self.num_coords))
-        s, q, self.iterations = self._minimise(model, guess, no_damping, max_iterations)
-        self.coords, self.coords_prev, self.q, self.q_prev = s, s.copy(), q, q.copy()
-        self.rotation_prev, self.translation_prev = self.rotation, self.translation
-        if self.newmark:
-            self._start_newmark(np.zeros(self.num_coords), np.zeros(3), np.zeros(3))
+        model = frames.QuadraticInertia(0.0, self.moments.mass_matrix, b)
+        guess = np.zeros(m) if s is None else np.asarray(s, dtype=np.float64)
+        no_damping = newton.Damping(np.zeros((m, m)), np.zeros(m), pose.coords)
+        s, q, self.iterations = self.solver.minimise(model, guess, no_damping, max_iterations)
+        self.state.pose = integrators.Pose(s, q, pose.rotation, pose.translation)
+        self.state.carried = self.scheme.settled(self)
         return s
 
     def run(self, num_steps, callback=None, should_cancel=None):
@@ -1531,83 +484,38 @@ class Simulation:
     def energy(self):
         """dict of kinetic, elastic, gravity and total energy [J] of the current state.
 
-        Kinetic 1/2 sum m |v|^2 with the integrator's own world velocities (Newmark's v_n;
+        Kinetic 1/2 sum m |v|^2 with the scheme's own world velocities (Newmark's v_n;
         implicit Euler's (x_n - x_{n-1}) / dt), elastic V(s_n), gravity -sum m g.x_n (zero at
         the rest pose in the rest frame).
         """
-        h2 = self.dt * self.dt
-        if self.newmark and (self.free or self.frame_motion is not None):
-            R, v_q = np.asarray(self.rotation, float), self._body_rates()[0]
-            R1, _, c1, _ = self._frame_rates()
-            velocity = _Field(R1, R1[:, :, None] * self.q + R[:, :, None] * v_q, c1)
-            kinetic = 0.5 * self._field_mass_norm2(velocity)
-        elif self.newmark:
-            v_q = self._body_rates()[0]
-            kinetic = 0.5 * float(v_q @ (self.mass_matrix @ v_q))
-        elif self.free or self.frame_motion is not None:
-            dR = self.rotation - self.rotation_prev
-            terms = [(dR, None), (self.rotation, self.q), (-self.rotation_prev, self.q_prev)]
-            kinetic = 0.5 * self._mass_norm2(terms, self.translation - self.translation_prev) / h2
-        else:
-            dq = self.q - self.q_prev
-            kinetic = 0.5 * float(dq @ (self.mass_matrix @ dq)) / h2
-        moment = self.rotation @ (self.first_moment_B @ self.q)
-        moment += (self.rotation - np.eye(3)) @ self.first_moment_X
-        moment += self.total_mass * (self.translation - (self.origin if self.free else 0.0))
+        kinetic = self.scheme.kinetic_energy(self)
+        mo, R = self.moments, self.rotation
+        moment = R @ (mo.first_moment_B @ self.q) + (R - np.eye(3)) @ mo.first_moment_X
+        moment += mo.total_mass * (self.translation - (self.origin if self.free else 0.0))
         gravity = -float(self.gravity @ moment)
         elastic = self.potential.evaluate(self.coords, 0)[0]
         return dict(kinetic=kinetic, elastic=elastic, gravity=gravity,
                     total=kinetic + elastic + gravity)
 
-    def _field_mass_norm2(self, field):
-        """sum_k m_k |F_k|^2 for a ``_Field`` F, from the mass moments."""
-        A, Z, d = field.A, field.Z, field.d
-        return float(np.sum(A * (A @ self.S0)) + np.einsum("ija,jlab,ilb->", Z, self.H1, Z)
-                     + 2.0 * np.einsum("il,jla,ija->", A, self.H0, Z)
-                     + 2.0 * d @ (A @ self.first_moment_X)
-                     + 2.0 * np.einsum("i,ja,ija->", d, self.first_moment_B, Z)
-                     + self.total_mass * d @ d)
 
-    def _cross_moment(self, qa, qb):
-        """sum_k m_k Z_a,k Z_b,k^T (3, 3), Z = Xb for q None, else B q."""
-        if qa is None and qb is None:
-            return self.S0
-        if qa is None:
-            return (self.H0 @ qb).T
-        if qb is None:
-            return self.H0 @ qa
-        return np.einsum("a,ijab,b->ij", qa, self.H1, qb)
-
-    def _mass_norm2(self, terms, d):
-        """sum_k m_k |sum_p L_p Z_p,k + d|^2 for terms [(L_p (3, 3), q_p or None)]."""
-        total = self.total_mass * float(d @ d)
-        for L, qa in terms:
-            first = self.first_moment_X if qa is None else self.first_moment_B @ qa
-            total += 2.0 * float(d @ (L @ first))
-            for L2, qb in terms:
-                total += float(np.sum(L * (L2 @ self._cross_moment(qb, qa))))
-        return total
-
-
-def _trapezoidal(rates, delta, dt):
-    """Newmark average acceleration update of (velocity, acceleration) rates (2, ...) given the
-    displacement delta over dt: a' = 4/dt^2 (delta - dt v) - a, v' = 2/dt delta - v."""
-    v, a = rates
-    return np.array([2.0 / dt * delta - v, 4.0 / dt ** 2 * (delta - dt * v) - a])
-
-
-def _newton_step(H, grad, fallback=None):
-    """-H^-1 grad by Cholesky. If H is not positive definite: ``fallback`` when given, else
-    H with a growing multiple of its diagonal added."""
-    H = 0.5 * (H + H.T)
-    scale = np.maximum(np.abs(np.diag(H)), 1e-300)
-    shift = 0.0
-    for _ in range(40):
-        try:
-            factor = scipy.linalg.cho_factor(H + shift * np.diag(scale), check_finite=False)
-            return -scipy.linalg.cho_solve(factor, grad, check_finite=False)
-        except np.linalg.LinAlgError:
-            if fallback is not None:
-                return fallback
-            shift = 1e-8 if shift == 0.0 else 10.0 * shift
-    raise np.linalg.LinAlgError("Newton system could not be regularised")
+def _check_arguments(deformer, h, mass_damping, stiffness_damping, free, frame_motion, substeps,
+                     contact, external_force, sample_placement):
+    """ValueError for arguments of ``Simulation`` that do not go together or are out of range
+    (the integrator's name is checked by ``integrators.scheme``)."""
+    if free and frame_motion is not None:
+        raise ValueError("a free body cannot also follow a prescribed frame motion")
+    if external_force is not None and (free or frame_motion is not None):
+        raise ValueError("an external force is for a body in a fixed frame (e.g. the "
+                         "flesh of a rig, solver.rig), not a free or moving one")
+    if sample_placement is not None and (free or frame_motion is not None or contact is None):
+        raise ValueError("a sample placement carries the contact samples of a body in a "
+                         "fixed frame; it needs a contact and no free or moving frame")
+    if deformer.basis is None:
+        raise ValueError("the deformer has no basis B; build it with its basis")
+    if int(substeps) != substeps or not 0 <= substeps <= MAX_SUBSTEPS:
+        raise ValueError(f"substeps must be an integer in [0, {MAX_SUBSTEPS}] (0 = "
+                         f"automatic), got {substeps!r}")
+    if not float(h) > 0.0:
+        raise ValueError(f"time step must be positive (got {h!r})")
+    if float(mass_damping) < 0.0 or float(stiffness_damping) < 0.0:
+        raise ValueError("damping coefficients must be non-negative")

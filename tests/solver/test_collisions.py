@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from solver import contact, dynamics, fem, materials, meshgen, modes, reduced, rs
+from solver import (contact, dynamics, fem, frames, integrators, materials, meshgen, modes,
+                    reduced, rs)
 
 G = 9.81
 GRAVITY = np.array([0.0, 0.0, -G])
@@ -55,15 +56,14 @@ def build_body(size, cells, youngs, poisson=0.3, density=1000.0, num_modes=8, pi
                 omega=np.sqrt(result.eigenvalues))
 
 
-def body_contact(body, colliders, integrator="newmark"):
+def body_contact(body, colliders):
     return contact.Contact(colliders, body["X"][body["idx"]], body["rows"], body["weights"],
-                           body["sample_masses"], integrator=integrator)
+                           body["sample_masses"])
 
 
 def simulate(body, colliders, frames, **kwargs):
     """Run ``frames`` frames at 24 fps: (trajectory, the Simulation, wall seconds)."""
-    con = (body_contact(body, colliders, kwargs.get("integrator", "newmark")) if colliders
-           else None)
+    con = body_contact(body, colliders) if colliders else None
     sim = dynamics.Simulation(body["deformer"], body["X"], body["masses"], body["potential"],
                               1.0 / FPS, contact=con, **kwargs)
     start = time.perf_counter()
@@ -154,7 +154,7 @@ def test_undamped_drop_gains_no_energy(monkeypatch):
     mgh = body["masses"].sum() * G * height
     results = {}
     for stabilised in (True, False):
-        monkeypatch.setattr(dynamics, "STABILISED_CONTACT", stabilised)
+        monkeypatch.setattr(integrators, "STABILISED_CONTACT", stabilised)
         con = body_contact(body, [floor])
         sim = dynamics.Simulation(body["deformer"], body["X"], body["masses"], body["potential"],
                                   1.0 / FPS, gravity=GRAVITY, free=True, contact=con)
@@ -242,7 +242,7 @@ def test_keyed_bar_stops_at_the_wall():
     wall = quad([[0.75, y_wall, -0.5], [1.4, y_wall, -0.5], [1.4, y_wall, 0.5],
                  [0.75, y_wall, 0.5]], thickness=thickness)
     assert wall.surface(0.0).face_normal[0] @ np.array([0.0, 1.0, 0.0]) < 0.0   # faces the bar
-    motion = dynamics.FrameMotion([0.0, 1.0], Rotation.from_rotvec(
+    motion = frames.FrameMotion([0.0, 1.0], Rotation.from_rotvec(
         [[0, 0, 0], [0, 0, np.radians(60.0)]]).as_matrix(), np.zeros((2, 3)))
     runs = {}
     for name, colliders in (("wall", [wall]), ("none", None)):

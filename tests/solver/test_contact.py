@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from solver import contact
+from solver import contact, integrators
 
 
 # Meshes ---------------------------------------------------------------------------------------
@@ -92,7 +92,9 @@ def make_contact(collider, x, masses=None, weights=None, integrator="newmark"):
     masses = np.full(k, 0.5) if masses is None else masses
     weights = np.full(k, 0.01) if weights is None else weights
     colliders = collider if isinstance(collider, list) else [collider]
-    return contact.Contact(colliders, x, np.eye(3 * k), weights, masses, integrator=integrator)
+    c = contact.Contact(colliders, x, np.eye(3 * k), weights, masses)
+    c.scheme = integrators.scheme(integrator)         # as dynamics.Simulation sets it
+    return c
 
 
 def fd_gradient(contact_, x, h=1e-7):
@@ -518,7 +520,8 @@ def four_point_block(scheme, friction, damping, mass=2.0):
     V, F = plane_mesh(5.0)
     ground = contact.MeshCollider(V, F, thickness=0.02, friction=friction, damping=damping, name="ground")
     X = np.array([[x, y, 0.0] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
-    c = contact.Contact([ground], X, None, np.full(4, 0.01), np.full(4, mass / 4), integrator=scheme)
+    c = contact.Contact([ground], X, None, np.full(4, 0.01), np.full(4, mass / 4))
+    c.scheme = integrators.scheme(scheme)
     rest = brentq(lambda z: c.forces(X + [0, 0, z])[:, 2].sum() - mass * 9.81, 1e-9, 0.02 - 1e-12)
     return c, X, rest
 

@@ -13,7 +13,7 @@ depend on solver.contact.
 import numpy as np
 import pytest
 
-from solver import dynamics, rs
+from solver import body_contact, dynamics, frames, rs
 from test_dynamics import GRAVITY, build_body
 
 
@@ -114,10 +114,10 @@ def test_framed_inertia_blocks_match_finite_differences(free_cube):
     rng = np.random.default_rng(3)
     sim = simulation(free_cube, 1.0 / 24.0, gravity=GRAVITY, free=True)
     rB = sim.basis_size
-    target = dynamics._Field(rs.exp_rotation(np.array([[0.2, 0.1, -0.3]]))[0],
-                             0.01 * rng.normal(size=(3, 3, rB)), rng.normal(size=3))
-    model = dynamics._FramedInertia(sim, 4.0 * 24.0 ** 2, target, 0.3 * sim.mass_matrix,
-                                    rng.normal(size=rB))
+    target = frames.Field(rs.exp_rotation(np.array([[0.2, 0.1, -0.3]]))[0],
+                          0.01 * rng.normal(size=(3, 3, rB)), rng.normal(size=3))
+    model = frames.FramedInertia(sim.moments, 4.0 * 24.0 ** 2, target,
+                                 0.3 * sim.moments.mass_matrix, rng.normal(size=rB))
     q = 0.05 * rng.normal(size=rB)
     R0, c0 = rs.exp_rotation(np.array([[0.5, -0.2, 0.1]]))[0], rng.normal(size=3)
     n = rB + 6
@@ -150,9 +150,10 @@ def test_framed_inertia_blocks_match_finite_differences(free_cube):
     mass_error = np.abs(per_vertex - mass).max() / np.abs(mass).max()
     # A free body's basis carries almost no first moment (F_B ~ 0, m_X = 0), which leaves the
     # q-u and phi-u blocks near zero: the algebra is checked again with made-up moments.
-    sim.first_moment_X = 0.1 * sim.total_mass * np.array([1.0, -2.0, 0.5])
-    sim.first_moment_B = sim.first_moment_B + rng.normal(size=sim.first_moment_B.shape)
-    model = dynamics._FramedInertia(sim, model.scale, target, model.D, model.e)
+    moments = sim.moments
+    moments.first_moment_X = 0.1 * moments.total_mass * np.array([1.0, -2.0, 0.5])
+    moments.first_moment_B = moments.first_moment_B + rng.normal(size=moments.first_moment_B.shape)
+    model = frames.FramedInertia(moments, model.scale, target, model.D, model.e)
     grad_error_moved, errors_moved = errors()
     print(f"framed inertia vs central differences: gradient {grad_error:.1e} "
           f"({grad_error_moved:.1e} with first moments); Hessian blocks "
@@ -180,26 +181,20 @@ def test_free_step_gradient_matches_finite_differences(free_cube, integrator):
     sim.set_state(s0, linear_velocity=[0.3, 0.0, 0.1], angular_velocity=[0.5, 1.0, -0.2])
     sim.step()
     # The next step's model, built as the step does.
-    if integrator == "newmark":
-        v_q, a_q = sim._body_rates()
-        target = sim._newmark_target(v_q, a_q)
-        model = dynamics._FramedInertia(sim, 4.0 / sim.dt ** 2, target,
-                                        *sim._mass_damping_terms(v_q))
-        damping = (sim._damping, sim.beta * (sim.potential.rest_hessian @ sim._v_s))
-        sim._begin_contact(v_q)
-    else:
-        model = sim._euler_framed_inertia()
-        damping = (sim._damping, np.zeros(6))
-        sim._begin_contact(None)
+    plan = sim.scheme.plan(sim, None)
+    model, damping = sim._framed_inertia(plan), plan.damping
+    sim._begin_contact(plan)
     s = sim.coords + 0.05 * rng.normal(size=6)
     R = rs.exp_rotation(np.array([[0.1, -0.2, 0.3]]))[0] @ sim.rotation
     c = sim.translation + 0.02 * rng.normal(size=3)
     q = sim.deformer.q(s)
-    grad, gauss_newton, _, _ = sim._framed_system(model, s, q, R, c, damping)
+    grad, gauss_newton, _, _ = sim.solver.framed_system(model, s, q, R, c, damping,
+                                                       sim.contact.framed_terms)
 
     def value(z):
         ds, R1, c1 = chart(R, c, z, 6)
-        return sim._framed_objective(model, s + ds, sim.deformer.q(s + ds), R1, c1, damping)
+        return sim.solver.framed_objective(model, s + ds, sim.deformer.q(s + ds), R1, c1, damping,
+                                           sim.contact.framed_terms)
 
     fd = central_gradient(value, 12, 1e-6)
     error = np.abs(fd - grad).max() / np.abs(grad).max()
@@ -219,15 +214,14 @@ def test_pinned_step_gradient_matches_finite_differences(pinned_bar):
     the quadratic contact, x linear in q) against differences of its q-gradient."""
     rng = np.random.default_rng(7)
     contact = random_quadratic(pinned_bar, rng, 20.0)
-    motion = dynamics.FrameMotion([0.0, 1.0], rs.exp_rotation(np.array([[0, 0, 0],
-                                                                        [0.3, 0, 0.6]])),
-                                  [[0, 0, 0], [0.1, 0.2, 0.0]])
+    motion = frames.FrameMotion([0.0, 1.0], rs.exp_rotation(np.array([[0, 0, 0],
+                                                                      [0.3, 0, 0.6]])),
+                                [[0, 0, 0], [0.1, 0.2, 0.0]])
     sim = simulation(pinned_bar, 1.0 / 24.0, gravity=GRAVITY, frame_motion=motion,
                      contact=contact)
     R, c = motion(0.3)
-    base = sim._newmark_moving_inertia(R, c, sim._newmark_target(*sim._body_rates()),
-                                       np.zeros(sim.basis_size))
-    model = dynamics._ContactInertia(base, sim, R, c)
+    base = sim._inertia(sim.scheme.plan(sim, (R, c)), (R, c))
+    model = body_contact.ContactInertia(base, sim.contact, R, c)
     s = 0.3 * rng.normal(size=6) / np.sqrt(np.maximum(pinned_bar["modes"].eigenvalues[:6], 1))
     J = sim.deformer.q_jacobian(s)
     grad = J.T @ model.evaluate(sim.deformer.q(s), 1)[1]
@@ -337,10 +331,10 @@ def test_a_start_inside_a_collider_fails_clearly(free_cube):
     with pytest.raises(ValueError, match="rows"):
         simulation(free_cube, 0.1, free=True,
                    contact=QuadraticContact(free_cube["X"][idx], rows[:, :3]))
+    # The simulation gives the contact its own scheme, so the two cannot disagree.
     euler_contact = QuadraticContact(free_cube["X"][idx], rows)
-    euler_contact.alpha = 1.0                   # solver.contact's implicit Euler end velocity
-    with pytest.raises(ValueError, match="integrator"):
-        simulation(free_cube, 0.1, free=True, contact=euler_contact)
+    simulation(free_cube, 0.1, free=True, contact=euler_contact, integrator="implicit_euler")
+    assert euler_contact.scheme.velocity_factor == 1.0
 
 
 def test_a_frame_keyed_into_a_collider_within_one_step_fails_clearly(pinned_bar):
@@ -357,8 +351,8 @@ def test_a_frame_keyed_into_a_collider_within_one_step_fails_clearly(pinned_bar)
             return np.inf, None, None
         return floor.evaluate_penalty(x, order)
     floor.evaluate = inside_is_infinite
-    motion = dynamics.FrameMotion([0.0, 1.0 / 24.0], np.stack([np.eye(3)] * 2),
-                                  [[0, 0, 0], [0, 0, -1.0]])
+    motion = frames.FrameMotion([0.0, 1.0 / 24.0], np.stack([np.eye(3)] * 2),
+                                [[0, 0, 0], [0, 0, -1.0]])
     sim = simulation(pinned_bar, 1.0 / 24.0, frame_motion=motion, contact=floor)
     with pytest.raises(dynamics.ContactError, match="moved into the body within one step"):
         sim.step()

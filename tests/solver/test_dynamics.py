@@ -18,7 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from solver import cubature, dynamics, fem, materials, meshgen, modes, reduced, rs
+from solver import cubature, dynamics, fem, frames, materials, meshgen, modes, newton, reduced, rs
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -468,9 +468,9 @@ def test_accelerating_frame_lags_like_gravity_and_settles(bar):
 def test_pinned_part_follows_keyed_rotation_and_the_rest_lags(bar):
     """Frame turning 90 deg about z in 1 s (keyed, slerped): pinned nodes sit exactly on the keys,
     the free end trails behind the turn (negative angular offset in the body frame)."""
-    keys = dynamics.FrameMotion([0.0, 1.0], Rotation.from_euler("z", [0.0, 90.0],
-                                                                degrees=True).as_matrix(),
-                                [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    keys = frames.FrameMotion([0.0, 1.0], Rotation.from_euler("z", [0.0, 90.0],
+                                                              degrees=True).as_matrix(),
+                              [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     trajectory = simulation(bar, 1.0 / 60.0, mass_damping=1.0, frame_motion=keys).run(30)
     x = positions(bar, trajectory)
     R, c = keys(0.5)
@@ -494,11 +494,11 @@ def test_moving_frame_is_frame_invariant(bar):
     h = 1.0 / 30.0
     fixed = simulation(bar, h, gravity=GRAVITY, mass_damping=0.5).run(12)
     R0 = Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix()
-    turned = dynamics.FrameMotion([0.0], [R0], [[1.0, 2.0, 3.0]])
+    turned = frames.FrameMotion([0.0], [R0], [[1.0, 2.0, 3.0]])
     moved = simulation(bar, h, gravity=R0 @ GRAVITY, mass_damping=0.5,
                        frame_motion=turned).run(12)
     same = simulation(bar, h, gravity=GRAVITY, mass_damping=0.5,
-                      frame_motion=dynamics.FrameMotion([0.0], [np.eye(3)], [[0.0] * 3])).run(12)
+                      frame_motion=frames.FrameMotion([0.0], [np.eye(3)], [[0.0] * 3])).run(12)
     scale = np.abs(fixed.q).max()
     print(f"frame invariance: |q_turned - q_fixed| / |q| = "
           f"{np.abs(moved.q - fixed.q).max() / scale:.1e}")
@@ -531,7 +531,7 @@ def test_rs_map_curvature_matches_finite_differences(soft_run):
     """The Newton term sum_i g_i d^2 q_i/ds^2 against central differences of J(s)^T g, from rest
     to rotations past 120 deg (it relies on ReducedRS's q formula: this catches a change)."""
     deformer = soft_run[0]["deformer"]
-    curvature = dynamics._GeometricStiffness(deformer)
+    curvature = newton.GeometricStiffness(deformer)
     rng = np.random.default_rng(11)
     per_unit = np.linalg.norm(soft_run[0]["modal_rs"][:, :3, :], axis=1).max(axis=0)
     errors = []

@@ -175,16 +175,13 @@ def test_the_soft_column_inverts_without_barrier(column):
 def record_steps(sim):
     """Wrap the internal step so that every dt taken is recorded in a list (returned)."""
     taken = []
-    inner = sim._newmark_step if sim.newmark else sim._euler_step
+    inner = sim._take_step
 
     def recorded():
         taken.append(sim.dt)
         return inner()
 
-    if sim.newmark:
-        sim._newmark_step = recorded
-    else:
-        sim._euler_step = recorded
+    sim._take_step = recorded
     return taken
 
 
@@ -193,7 +190,7 @@ def test_a_rejected_step_is_retaken_as_two_half_steps():
     restored state, exactly like a simulation with twice the substeps (same state to round-off:
     the undo restored everything), and the next frame is back to the nominal dt. Both start
     at rest (a start velocity would make Newmark's start acceleration depend on dt through
-    the finite-difference curvature of ``_body_rates``)."""
+    the finite-difference curvature of ``NewmarkScheme.body_rates``)."""
     column = soft_column(2e5)
     potential = column_potential(column, "LINEAR")
     sim = column_simulation(column, potential, substeps=1)
@@ -206,7 +203,8 @@ def test_a_rejected_step_is_retaken_as_two_half_steps():
     assert taken == [h, h / 2, h / 2] and sim.dt == h and sim.time == pytest.approx(h)
     scale = np.abs(reference.coords).max()
     assert np.allclose(sim.coords, reference.coords, atol=1e-10 * scale)
-    assert np.allclose(sim._v_s, reference._v_s, atol=1e-9 * np.abs(reference._v_s).max())
+    v_s, reference_v_s = sim.state.carried.velocity, reference.state.carried.velocity
+    assert np.allclose(v_s, reference_v_s, atol=1e-9 * np.abs(reference_v_s).max())
     sim.step()
     assert taken[3:] == [h]
 
@@ -248,10 +246,11 @@ def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
     assert np.allclose(retried.coords, reference.coords, rtol=1e-9, atol=1e-12)
     assert np.allclose(retried.rotation, reference.rotation, atol=1e-12)
     assert np.allclose(retried.translation, reference.translation, atol=1e-12)
-    turn = lambda sim: Rotation.from_matrix(sim.rotation_prev @ sim.rotation.T).as_rotvec()
+    turn = lambda sim: Rotation.from_matrix(sim.state.carried.rotation
+                                            @ sim.rotation.T).as_rotvec()
     assert np.allclose(turn(retried), 2.0 * turn(reference), atol=1e-12)
-    assert np.allclose(retried.coords - retried.coords_prev,
-                       2.0 * (reference.coords - reference.coords_prev), atol=1e-12)
+    assert np.allclose(retried.coords - retried.state.carried.coords,
+                       2.0 * (reference.coords - reference.state.carried.coords), atol=1e-12)
 
 
 def test_inversion_error_when_even_the_smallest_step_inverts():

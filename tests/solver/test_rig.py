@@ -14,6 +14,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from solver import dynamics, embed, fem, meshgen, rig
+from solver.body_contact import BodyContact
+from solver.frames import FrameMotion
 from test_dynamics import build_body
 
 H = 1.0 / 24.0
@@ -106,7 +108,7 @@ def test_external_force_hook_is_gravity_when_it_is_gravitys_force(bar):
                                        bar["potential"], H, gravity=g).run(steps)
     simulation = dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"],
                                      H, external_force=None)
-    force = simulation.first_moment_B.T @ g
+    force = simulation.moments.first_moment_B.T @ g
     hooked = dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H,
                                  external_force=lambda t: force).run(steps)
     np.testing.assert_allclose(hooked.coords, with_gravity.coords, atol=1e-9)
@@ -304,7 +306,7 @@ def test_flesh_on_a_turning_bone_meets_a_wall_as_a_keyed_body_does():
                          for k in range(frames)])
 
     def keyed(colliders):
-        frame = dynamics.FrameMotion(times, turns, np.zeros((frames, 3)))
+        frame = FrameMotion(times, turns, np.zeros((frames, 3)))
         extra = {} if colliders is None else dict(contact=body_contact(body, colliders))
         return dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
                                    frame_motion=frame, **common, **extra) \
@@ -350,7 +352,7 @@ def test_a_body_carried_into_a_wall_it_touches_starts_each_step_outside_it(carri
         """(F, k, 3) world positions of the contact samples."""
         common = dict(substeps=1, contact=body_contact(body, [wall]))
         if carrier == "keyed frame":
-            frame = dynamics.FrameMotion(times, turns, np.zeros((frames, 3)))
+            frame = FrameMotion(times, turns, np.zeros((frames, 3)))
             return dynamics.Simulation(body["deformer"], X, body["masses"], body["potential"], H,
                                        frame_motion=frame, **common) \
                 .run(frames - 1).world_positions(X[idx], body["rows"])
@@ -368,7 +370,7 @@ def test_a_body_carried_into_a_wall_it_touches_starts_each_step_outside_it(carri
           f"(wall {y_wall:.4f} m); free tip y {np.sin(angle[-1]):.2f} m")
     assert x[:, :, 1][under_wall].max() < y_wall
     assert np.sin(angle).max() > 0.9
-    monkeypatch.setattr(dynamics.Simulation, "_holding_deformation", lambda self, R, c: None)
+    monkeypatch.setattr(BodyContact, "holding_deformation", lambda self, state, R, c: None)
     with pytest.raises(dynamics.ContactError, match="moved into the body"):
         samples_over_time()
 
@@ -387,7 +389,7 @@ def test_a_settled_start_includes_the_external_force_and_stays_put(bar):
     settled = dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H,
                                   gravity=g).static_equilibrium()
     probe = dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H)
-    force = probe.first_moment_B.T @ g
+    force = probe.moments.first_moment_B.T @ g
     hooked = dynamics.Simulation(bar["deformer"], bar["X"], bar["masses"], bar["potential"], H,
                                  external_force=lambda t: force)
     start = hooked.static_equilibrium()
