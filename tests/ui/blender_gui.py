@@ -186,6 +186,14 @@ class BlenderGUI:
         """Press and release each key (xdotool names: Escape, ctrl+z, ctrl+shift+z, ...)."""
         self.xdotool("key", "--delay", "50", *keys)
 
+    def settle(self, seconds=0.3, at=(120, 700)):
+        """Let Blender handle events and redraw: two small pointer moves over the viewport
+        (Blender redraws on events) `seconds` apart. Panels that changed size take a few redraws
+        to move into place."""
+        for dx in (0, 1):
+            self.mouse_move(at[0] + dx, at[1])
+            time.sleep(seconds)
+
     # --- geometry --------------------------------------------------------------------------------
     def rects(self):
         return self.run("result = rects()")

@@ -17,6 +17,7 @@ import subprocess
 import pytest
 
 from blender_gui import PROJECT, BlenderGUI
+from sidebar import open_sidebar
 
 ROOT = pathlib.Path(os.environ.get("RS_ELASTIC_UI_ROOT", PROJECT / "build" / "ui-root"))
 ARTIFACTS = pathlib.Path(os.environ.get("RS_ELASTIC_UI_ARTIFACTS",
@@ -64,6 +65,7 @@ with override():
         (gui.run_dir / "helpers").mkdir()
         shutil.copy(PROJECT / "tests" / "blender" / "blender_helpers.py", gui.run_dir / "helpers")
         gui.run(f"import sys; sys.path.insert(0, {gui.run_in + '/helpers'!r})")
+        gui.run("watch_panels()")
         yield gui
     finally:
         gui.stop()
@@ -88,20 +90,3 @@ with override():
     found = blender.tracebacks(since=start)
     assert not found, "Blender printed a traceback during the test:\n" + "\n".join(found)
     assert blender.process.poll() is None, "Blender exited during the test"
-
-
-CATEGORY = ("result = next(r for r in view3d()[1].regions if r.type == 'UI')"
-            ".active_panel_category")
-
-
-def open_sidebar(gui):
-    """Show the 3D viewport's sidebar and pick its RS Elastic tab the way a user does, with a
-    click on the tab (Python may read the active tab but not set it): the tabs stand in a
-    column at the sidebar's right edge, so click down that column until it is picked."""
-    gui.run("view3d()[1].spaces.active.show_region_ui = True")
-    x, y, width, height = gui.rects()["sidebar"]
-    for tab_y in range(y + 8, y + min(height, 600), 12):
-        if gui.run(CATEGORY) == "RS Elastic":
-            return
-        gui.click(x + width - 12, tab_y)
-    assert gui.run(CATEGORY) == "RS Elastic", "no RS Elastic tab in the sidebar"

@@ -105,6 +105,15 @@ def reports():
 
 DRAWN = []                   # [(panel idname, active object's name), ...] as panels draw
 NAMESPACE["DRAWN"] = DRAWN
+SIDEBAR_DRAWS = [0]          # how often a 3D viewport's sidebar has drawn
+NAMESPACE["SIDEBAR_DRAWS"] = SIDEBAR_DRAWS
+
+
+def _count_sidebar_draw():
+    SIDEBAR_DRAWS[0] += 1
+
+
+bpy.types.SpaceView3D.draw_handler_add(_count_sidebar_draw, (), 'UI', 'POST_PIXEL')
 
 
 def _record(panel_name):
