@@ -52,8 +52,8 @@ class BlenderGUI:
     def start(self, timeout=120.0, hide_numpy=False):
         """Start Xvfb and Blender; return once the command channel answers.
 
-        `hide_numpy`: an empty folder is mounted over the root's numpy for this Blender only
-        (a Blender without numpy, as Debian's package allows)."""
+        `hide_numpy`: a package that raises ModuleNotFoundError is mounted over the root's numpy
+        for this Blender only (a Blender without numpy, as Debian's package allows)."""
         inside = self.run_in
         env = [f"HOME={inside}/home", f"TMPDIR={inside}/tmp", "PYTHONUNBUFFERED=1",
                f"BLENDER_USER_RESOURCES={inside}/user", f"RS_UI_CHANNEL={inside}/channel"]
@@ -61,8 +61,10 @@ class BlenderGUI:
                    "--python", f"{inside}/ui_server.py"]
         command = ["/usr/bin/env", *env, "/bin/sh", f"{inside}/launch.sh", inside, *blender]
         if hide_numpy:
-            (self.run_dir / "empty").mkdir()
-            command = ["/bin/sh", "-c", f"mount --bind {inside}/empty "
+            (self.run_dir / "no_numpy").mkdir()
+            (self.run_dir / "no_numpy" / "__init__.py").write_text(
+                "raise ModuleNotFoundError(\"No module named 'numpy'\", name='numpy')\n")
+            command = ["/bin/sh", "-c", f"mount --bind {inside}/no_numpy "
                        "/usr/lib/python3/dist-packages/numpy && exec \"$@\"", "sh", *command]
         self._log = open(self.log_path, "wb")
         self.process = subprocess.Popen([str(IN_ROOT), str(self.root), *command],
