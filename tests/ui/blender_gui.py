@@ -69,7 +69,9 @@ class BlenderGUI:
         self._log = open(self.log_path, "wb")
         self.process = subprocess.Popen([str(IN_ROOT), str(self.root), *command],
                                         stdout=self._log, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+                                        stdin=subprocess.PIPE, start_new_session=True)
+        # Never written: launch.sh kills Blender and Xvfb when it closes, i.e. when this
+        # process ends, however it ends.
         deadline = time.monotonic() + timeout
         ready = self.run_dir / "channel" / "ready"
         while not ready.exists():
@@ -105,6 +107,7 @@ class BlenderGUI:
             if self.process.poll() is None:
                 os.killpg(self.process.pid, 9)    # the namespace's processes go with it
                 self.process.wait(5)
+            self.process.stdin.close()
             self._log.close()
             shutil.rmtree(self.run_dir, ignore_errors=True)
 

@@ -2,11 +2,13 @@
 # Runs inside the GUI test root: Xvfb on a free display, then Blender on it; Xvfb ends with Blender.
 #   launch.sh RUN_FOLDER BLENDER_ARGS...
 # RUN_FOLDER/display gets the display number once Xvfb listens; RUN_FOLDER/blender.exit Blender's
-# exit status.
+# exit status. The caller holds this script's standard input open and never writes to it: when
+# the caller ends, however it ends (even killed), the input closes and Blender and Xvfb are killed.
 run=$1
 shift
+exec 4<&0          # the caller's pipe, kept for the watcher below
 Xvfb -displayfd 3 -screen 0 1920x1080x24 +extension GLX -nolisten tcp \
-  3>"$run/display" >"$run/xvfb.log" 2>&1 &
+  3>"$run/display" </dev/null >"$run/xvfb.log" 2>&1 &
 xvfb=$!
 waited=0
 until grep -q . "$run/display" 2>/dev/null; do
@@ -19,9 +21,13 @@ until grep -q . "$run/display" 2>/dev/null; do
   waited=$((waited + 1))
 done
 export DISPLAY=":$(cat "$run/display")"
-blender "$@"
+blender "$@" </dev/null &
+blender=$!
+(cat <&4 >/dev/null; kill -KILL "$blender" "$xvfb" 2>/dev/null) &
+watcher=$!
+wait "$blender"
 status=$?
 echo "$status" > "$run/blender.exit"
-kill "$xvfb" 2>/dev/null
+kill "$xvfb" "$watcher" 2>/dev/null
 wait "$xvfb"
 exit "$status"
