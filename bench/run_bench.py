@@ -71,10 +71,10 @@ def case_tetrahedralize(name):
 def case_prepare_dense(subdivisions):
     """Prepare at the default settings (edge 0.05, 20 modes, automatic basis and cubature, a free
     body) of a dense closed surface: the shared knight upsampled ``subdivisions`` times (4: 256k
-    triangles), through the proxy (``solver.proxy``), as bridge/bodies.py's stages do."""
+    triangles), stage by stage as Prepare Body runs them (``solver.preparation``)."""
     import igl
     import numpy as np
-    from solver import embed, fem, modes, proxy, reduced, rs, tetmesh
+    from solver import preparation
     V, F = read_surface(MESHES / "decimated-knight.off")
     V, F = igl.upsample(np.asarray(V, float), np.asarray(F, np.int64),
                         number_of_subdivs=int(subdivisions))[:2]
@@ -87,17 +87,15 @@ def case_prepare_dense(subdivisions):
         seconds[name], peaks[name] = time.perf_counter() - start, peak.mb
         return out
 
-    budget = proxy.triangle_budget(V, F, 0.05)
-    P, G, simplified = stage("proxy", lambda: proxy.proxy_surface(V, F, budget))
-    X, T = stage("tetrahedralize", lambda: tetmesh.tetrahedralize(P, G))
-    stage("embed", lambda: embed.embed_points(X, T, V))
-    masses = fem.lumped_masses(X, T, 1000.0)
-    body = stage("modes", lambda: modes.linear_modes(
-        fem.stiffness_matrix(X, T, 1e6, 0.45), masses, 20, rest_positions=X))
-    deformer, _ = stage("reduced", lambda: reduced.prepare_reduced_rs(
-        X, T, masses, body.vectors, body.eigenvalues, rs.PoissonReconstruction(X, T)))
-    return dict(triangles=len(F), proxy_triangles=len(G), simplified=simplified, nodes=len(X),
-                tets=len(T), basis_size=deformer.basis_size,
+    meshing = preparation.MeshingSettings()
+    P, G, closed = stage("proxy", lambda: preparation.mesher_surface(V, F, meshing))
+    X, T = stage("tetrahedralize", lambda: preparation.tet_mesh(P, G, meshing))
+    tet_body = stage("embed", lambda: preparation.embedded(X, T, V))
+    linear = stage("modes", lambda: preparation.linear_modes(tet_body, 1e6, 0.45, 1000.0, 20))
+    deformer = stage("reduced", lambda: preparation.reduced_deformer(
+        tet_body, linear, 1000.0, preparation.ReducedSettings()))
+    return dict(triangles=len(F), proxy_triangles=len(G), simplified=closed and len(G) < len(F),
+                nodes=len(X), tets=len(T), basis_size=deformer.basis_size,
                 cubature_tets=len(deformer.cubature_tets), seconds=seconds,
                 stage_peak_rss_mb=peaks, total_seconds=sum(seconds.values()),
                 peak_rss_mb=peak_rss_mb())
@@ -893,27 +891,18 @@ def ring_table(ring, softbody):
 def case_rig(arg, frames=240, num_modes=20):
     """A 240-frame shot of a ~30k-tet bar skinned to 3 bones (issue 13): the bones turn and
     stop; the flesh past the first bone is free. Prepare (modes, default reduced RS, node
-    weights, the rig load's moments) and the simulation loop are timed apart."""
+    weights, the rig load's moments) and the simulation loop are timed apart. The body and the
+    simulation are built as a rigged body's Simulate builds them (``solver.preparation``,
+    ``solver.problems``)."""
     import numpy as np
     from scipy.spatial.transform import Rotation
-    from solver import dynamics, fem, inversion, materials, meshgen, modes, reduced, rig, rs
+    from solver import meshgen, preparation, problems, rig
     X, T = meshgen.box_tet_mesh((3.0, 0.5, 0.5), (54, 10, 10))             # 32,400 tets
     h = 1.0 / 24.0
     start = time.perf_counter()
-    masses = fem.lumped_masses(X, T, 1000.0)
     pinned = np.flatnonzero(X[:, 0] < 1.0 + 1e-9)              # bone 1's segment follows
-    body = modes.linear_modes(fem.stiffness_matrix(X, T, 5e5, 0.45), masses, num_modes, pinned)
-    modal_rs = rs.linear_rs(rs.rs_operator(X, T), body.vectors)
-    recon = rs.PoissonReconstruction(X, T, pinned)
-    deformer, _ = reduced.prepare_reduced_rs(X, T, masses, body.vectors, body.eigenvalues,
-                                             recon, modal_rs=modal_rs)
-    mu, lam = fem.lame_parameters(5e5, 0.45)
-    volumes = np.abs(fem.tet_volumes(X, T))
-    potential = inversion.with_barrier(
-        materials.prepare_potential(materials.Linear(mu, lam), modal_rs, volumes)[0], modal_rs,
-        volumes)
-    # As a Blender simulation: the reconstruction barrier too (bridge/simulation_inputs.py).
-    potential = inversion.with_reconstruction_barrier(potential, deformer, X, T)
+    body = preparation.prepare_body(X, T, X, 5e5, 0.45, 1000.0, num_modes, pinned=pinned)
+    masses = body.lumped_masses(1000.0)
     centres = np.array([0.5, 1.5, 2.5])
     weights = np.maximum(0.0, 1.0 - np.abs(X[:, :1] - centres[None]))      # blended bones
     weights /= weights.sum(axis=1)[:, None]
@@ -925,14 +914,16 @@ def case_rig(arg, frames=240, num_modes=20):
         pivot = np.array([joint, 0.25, 0.25])
         transforms[:, b, :, :3] = R
         transforms[:, b, :, 3] = pivot - R @ pivot
-    load = rig.RigLoad(rig.RigMotion(times, transforms), weights, masses, deformer.basis, X,
+    load = rig.RigLoad(rig.RigMotion(times, transforms), weights, masses, body.deformer.basis, X,
                        gravity=(0.0, 0.0, -9.81))
-    simulation = dynamics.Simulation(deformer, X, masses, potential, h, gravity=np.zeros(3),
-                                     external_force=load.force, tets=T)
+    simulation = problems.simulation(
+        body, problems.linear_potential(body, 5e5, 0.45),
+        problems.SimulationSettings(h=h, density=1000.0, substeps=1), external_force=load.force)
     prepare_seconds = time.perf_counter() - start
     start = time.perf_counter()
     simulation.run(frames - 1)
     seconds = time.perf_counter() - start
+    deformer = body.deformer
     return dict(tets=len(T), nodes=len(X), modes=num_modes, frames=frames, bones=3,
                 basis_size=deformer.basis_size, load_pairs=len(load.pairs),
                 substeps=simulation.substeps, prepare_seconds=prepare_seconds,

@@ -187,14 +187,13 @@ def rest_targets(obj, blender_scene, frames, tracks):
     return out
 
 
-def held_by_follow_weights(obj, body, masses, potential):
-    """``potential`` plus the springs of the Follow Rig weights between 0 and the pin threshold
-    (``solver.rig.follow_stiffness``, stiffest at the body's fastest mode), or ``potential``
-    itself when the group paints only 0 and pins."""
+def follow_stiffness(obj, body, masses):
+    """The springs of the Follow Rig weights between 0 and the pin threshold
+    (``solver.rig.follow_stiffness``, stiffest at the body's fastest mode; masses (N,) [kg]),
+    or None when the group paints only 0 and pins."""
     weights = scene.group_weights(obj, obj.rs_elastic.pin_group)
     if not np.any((weights > 0.0) & (weights < rig.PIN_THRESHOLD)):
-        return potential
+        return None
     follow = rig.node_values(body.embedding, weights, body.nodes, body.tets)[:, 0]
     omega = float(np.sqrt(np.max(body.linear_modes.eigenvalues)))
-    stiffness = rig.follow_stiffness(follow, masses, body.deformer.basis, omega)
-    return rig.HeldPotential(potential, body.deformer, stiffness)
+    return rig.follow_stiffness(follow, masses, body.deformer.basis, omega)

@@ -23,14 +23,14 @@ import functools
 import bpy
 import numpy as np
 
-from ..solver import cache, embed, fem, materials, modes, proxy, reduced, rig, rs, tetmesh
-from ..solver.body import PreparedBody, TetBody
+from ..solver import cache, fem, materials, preparation, tetmesh
+from ..solver.body import PreparedBody
 from . import armature, mesh_cache, scene, stage_cache, staleness
 from .jobs import Cancelled, Job
 from .scene import InputError
 
-# How the energy cubature is trained (`materials.prepare_potential`); part of its key.
-ENERGY_TRAINING = dict(num_poses=200, max_tets=200, tol=1e-4, max_rotation=np.pi / 2, seed=0)
+# How the energy cubature is trained; part of its key.
+ENERGY_TRAINING = preparation.ENERGY_TRAINING
 
 # Version of the automatic basis and cubature sizing and training range (solver.reduced): a
 # reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
@@ -67,6 +67,15 @@ class BodyInputs:
     cubature_tolerance: float = 0.0
     training_poses: int = 0
     energy: "EnergyInputs" = None   # set to train the energy cubature too (StVK / Fung)
+
+    @property
+    def meshing(self):
+        return preparation.MeshingSettings(self.edge_length, self.envelope, self.proxy_triangles)
+
+    @property
+    def reduced_settings(self):
+        return preparation.ReducedSettings(self.basis_size, self.cubature_tets,
+                                           self.cubature_tolerance, self.training_poses)
 
     @functools.cached_property
     def tets_key(self):
@@ -118,12 +127,6 @@ class EnergyInputs:
         return {"STVK": "StVK", "FUNG": "Fung"}[self.kind]
 
 
-def material_lame(settings):
-    """(mu, lam) [Pa] of the object's Young's modulus and Poisson's ratio (``fem.lame_parameters``;
-    ValueError where the material is not stable)."""
-    return fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)
-
-
 def energy_inputs(obj):
     """EnergyInputs of the object's material model, or None for Linear (which needs no cubature)."""
     settings = obj.rs_elastic
@@ -170,7 +173,7 @@ def read_inputs(obj, depsgraph, with_material=True):
     if not with_material:
         return inputs
     try:
-        material_lame(settings)
+        fem.lame_parameters(settings.youngs_modulus, settings.poisson_ratio)   # a stable material
         if not settings.density > 0.0:
             raise ValueError(f"Density must be positive, got {settings.density:g} kg/m³")
     except ValueError as exc:
@@ -200,28 +203,13 @@ def read_inputs(obj, depsgraph, with_material=True):
 
 # --- the stages (worker-thread safe: no bpy) ------------------------------------------------------
 
-def _cubature_size(inputs, X, T, linear_modes):
-    """Cubature tets: the user's setting, raised to ``reduced.default_cubature_size`` of the
-    automatic basis when Basis Size is 0 (automatic), since that basis grows as O(modes^2)."""
-    if inputs.basis_size:
-        return inputs.cubature_tets
-    automatic = reduced.default_basis_size(linear_modes.vectors.shape[1], num_nodes=len(X),
-                                           num_tets=len(T))
-    return max(inputs.cubature_tets, reduced.default_cubature_size(automatic, num_tets=len(T)))
-
-
 def proxy_for(inputs, job):
-    """The surface fTetWild meshes: the evaluated surface, or its simplified closed proxy when it
-    has more triangles than the budget (the Proxy Triangles setting, 0: ``proxy.triangle_budget``
-    of the edge length). Says which in the progress."""
-    V, F = inputs.surface_vertices, inputs.surface_triangles
-    budget = inputs.proxy_triangles or proxy.triangle_budget(V, F, inputs.edge_length)
-    if len(F) > budget:
-        job.step(0.02, f"Simplifying {len(F):,} triangles to a {budget:,}-triangle proxy")
-        V, F, simplified = proxy.proxy_surface(V, F, budget)
-        if not simplified:
-            job.warn(f"'{inputs.object_name}' is not a closed manifold, so fTetWild meshes all "
-                     f"{len(F):,} of its triangles (slower)")
+    """The surface fTetWild meshes (``preparation.mesher_surface``); says which in the progress."""
+    V, F, closed = preparation.mesher_surface(inputs.surface_vertices, inputs.surface_triangles,
+                                              inputs.meshing, say=job.step)
+    if not closed:
+        job.warn(f"'{inputs.object_name}' is not a closed manifold, so fTetWild meshes all "
+                 f"{len(F):,} of its triangles (slower)")
     job.step(0.05, f"Tetrahedralising {len(F):,} triangles with fTetWild")
     return V, F
 
@@ -242,55 +230,39 @@ def tet_stage(inputs, job):
             V, F = proxy_for(inputs, job)
             stage_cache.stats["tetrahedralize"] += 1
             try:
-                X, T = tetmesh.tetrahedralize(V, F, edge_length_fac=inputs.edge_length,
-                                              epsilon=inputs.envelope,
-                                              should_cancel=job.is_cancelled)
+                X, T = preparation.tet_mesh(V, F, inputs.meshing, should_cancel=job.is_cancelled)
             except tetmesh.TetMeshError as exc:
                 if job.is_cancelled():
                     raise Cancelled() from None
                 raise InputError(f"Tetrahedralisation of '{inputs.object_name}' failed: {exc}") from None
         job.step(0.45, "Embedding the mesh in the tets")
-        return TetBody(X, T, embed.embed_points(X, T, inputs.base_vertices))
+        return preparation.embedded(X, T, inputs.base_vertices)
 
     return stage_cache.get_or_compute(inputs, "tets", inputs.tets_key, "", compute, job,
                                       same_as_stored)
 
 
 def surface_pins(inputs, tet_body):
-    """embed.SurfacePins of the pin group's weights (the rule is embed.pin_surface), or None for
+    """embed.SurfacePins of the pin group's weights (``preparation.surface_pins``), or None for
     a free body. Cheap next to the modes, and a function of the modes' key: computed again
     rather than cached."""
     if inputs.pin_weights is None:
         return None
-    X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
-    # A rig's Follow Rig weights are volumetric, as its springs below 0.5 are (rig.node_values).
-    carried = rig.node_values(Phi, inputs.pin_weights, X, T)[:, 0] if inputs.pins_hold_volume \
-        else None
-    # fTetWild's surface strays up to the envelope from the mesh: twice that still finds the
-    # tet-surface nodes of a painted face (embed.PIN_TOLERANCE is this for the default envelope).
-    return embed.pin_surface(X, T, Phi, inputs.base_vertices, inputs.base_triangles,
-                             inputs.pin_weights, threshold=0.5, tolerance=2.0 * inputs.envelope,
-                             node_weights=carried)
+    return preparation.surface_pins(tet_body, inputs.base_vertices, inputs.base_triangles,
+                                    inputs.pin_weights, inputs.envelope,
+                                    holds_volume=inputs.pins_hold_volume)
 
 
 def modes_stage(inputs, tet_body, job, tets_digest, pins):
     """Linear modes for the material and the pins (``surface_pins``; None for a free body):
     from memory, the disk cache, or eigsh."""
     def compute():
-        pinned = None
-        if pins is not None:
-            pinned = pins.nodes
-            if len(pinned) >= len(tet_body.nodes):
-                raise InputError(f"The pins of '{inputs.object_name}' hold every tet node: "
-                                 "nothing is left free to move")
-        job.step(0.55, "Assembling stiffness and mass")
-        K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, inputs.youngs, inputs.poisson)
-        masses = tet_body.lumped_masses(inputs.density)
-        job.step(0.65, f"Computing {inputs.num_modes} linear modes")
+        job.step(0.55, f"Computing {inputs.num_modes} linear modes")
         stage_cache.stats["modes"] += 1
         try:
-            return modes.linear_modes(K, masses, inputs.num_modes, pinned,
-                                      rest_positions=tet_body.nodes)
+            return preparation.linear_modes(tet_body, inputs.youngs, inputs.poisson,
+                                            inputs.density, inputs.num_modes,
+                                            None if pins is None else pins.nodes)
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
 
@@ -307,19 +279,11 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.
     modes_digest = modes_digest or stage_cache.digest("modes", linear_modes)
 
     def compute():
-        X, T = tet_body.nodes, tet_body.tets
-        pinned = linear_modes.pinned_nodes
         job.step(0.72, "Reduced RS: training poses")
         stage_cache.stats["reduced"] += 1
-        recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned if len(pinned) else None)
-        masses = tet_body.lumped_masses(inputs.density)
-        deformer, _ = reduced.prepare_reduced_rs(
-            X, T, masses, linear_modes.vectors, linear_modes.eigenvalues, recon,
-            max_size=inputs.basis_size or None, max_tets=_cubature_size(inputs, X, T,
-                                                                         linear_modes),
-            tol=inputs.cubature_tolerance, num_poses=inputs.training_poses,
+        return preparation.reduced_deformer(
+            tet_body, linear_modes, inputs.density, inputs.reduced_settings,
             progress=lambda f, message: job.step(0.72 + (end - 0.72) * f, f"Reduced RS: {message}"))
-        return deformer
 
     def fits(d):
         return d.basis is None or d.basis.shape[0] == 3 * len(tet_body.nodes)
@@ -363,11 +327,9 @@ def energy_stage(energy, body, job, start=0.0, end=1.0):
     def compute():
         job.step(start, f"{title}: RS coordinates of the modes")
         stage_cache.stats["energy"] += 1
-        potential, _ = materials.prepare_potential(
-            energy.material, body.modal_rs, body.volumes,
-            eigenvalues=body.linear_modes.eigenvalues, **ENERGY_TRAINING,
+        return preparation.energy_potential(
+            body, energy.material,
             progress=lambda f, message: job.step(start + (end - start) * f, f"{title}: {message}"))
-        return potential
 
     return stage_cache.get_or_compute(energy, "energy", energy.key(parent), parent, compute, job,
                                       _fits_body(body))

@@ -3,7 +3,7 @@ import dataclasses
 
 import numpy as np
 
-from ..solver import contact, dynamics, inversion, materials
+from ..solver import contact, dynamics, problems
 from ..solver.frames import FrameMotion
 from . import (armature, bake, bodies, colliders, jobs, prepared, scene,
                stage_cache)
@@ -50,44 +50,47 @@ def energy_work(obj):
     energy = bodies.energy_inputs(obj)
     if energy is None:
         return None
-    tools = prepared.require(obj)
-    if bodies.cached_energy(energy, tools) is not None:
+    body = prepared.require(obj)
+    if bodies.cached_energy(energy, body) is not None:
         return None
-    return lambda job: bodies.energy_stage(energy, tools, job)
+    return lambda job: bodies.energy_stage(energy, body, job)
 
 
 def record_energy(obj):
     """Main thread, after a simulation: note the cubature it used among the object's cache
     files (so a later Prepare keeps it and a save copies it next to the .blend)."""
     energy = bodies.energy_inputs(obj)
-    tools = prepared.for_object(obj)
-    if energy is not None and tools is not None:
-        parent = bodies.energy_parent(tools)
+    body = prepared.for_object(obj)
+    if energy is not None and body is not None:
+        parent = bodies.energy_parent(body)
         stage_cache.record_energy(obj, parent, energy.key(parent))
 
 
-def potential_for(tools, settings):
+def potential_for(body, settings):
     """The reduced potential of the body's material. StVK / Fung: the energy cubature, the
     body's fourth cache stage (`bodies.energy_stage`), from memory or its cache file, trained
     here only if nobody did before (the Simulate operator trains it first in its job, see
-    `energy_work`). Linear: the exact quadratic form, kept on the RSTools."""
+    `energy_work`). Linear: the exact quadratic form (``problems.linear_potential``)."""
     energy = bodies.energy_inputs(settings.id_data)
-    if energy is not None:
-        job = jobs.Job(None)
-        potential = bodies.energy_stage(energy, tools, job)
-        for message in job.warnings:
-            print(f"RS Elastic: {message}")
-        return potential
-    cache = tools.__dict__.setdefault("_potentials", {})
-    key = (settings.youngs_modulus, settings.poisson_ratio)
-    if key not in cache:
-        mu, lam = bodies.material_lame(settings)
-        cache[key], _ = materials.prepare_potential(materials.Linear(mu, lam), tools.modal_rs,
-                                                    tools.volumes)
-    return cache[key]
+    if energy is None:
+        return problems.linear_potential(body, settings.youngs_modulus, settings.poisson_ratio)
+    job = jobs.Job(None)
+    potential = bodies.energy_stage(energy, body, job)
+    for message in job.warnings:
+        print(f"RS Elastic: {message}")
+    return potential
 
 
-def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
+def settings_of(obj, blender_scene, gravity):
+    """The body's simulation settings as a ``problems.SimulationSettings``."""
+    settings = obj.rs_elastic
+    return problems.SimulationSettings(
+        h=scene.frame_interval(blender_scene), density=settings.density, gravity=gravity,
+        damping_mass=settings.damping_mass, damping_stiffness=settings.damping_stiffness,
+        integrator=settings.integrator.lower(), substeps=settings.substeps)
+
+
+def contact_for(obj, blender_scene, body, frames, h, world_to_sim, total_mass):
     """(the body's ``contact.Contact`` against the scene's colliders, the base vertices it
     samples (k,)), or (None, None) without any collider."""
     if not obj.rs_elastic.use_collisions:
@@ -96,7 +99,7 @@ def contact_for(obj, blender_scene, tools, frames, h, world_to_sim, total_mass):
     if not found:
         return None, None
     indices, points, rows, weights, masses = colliders.contact_samples(
-        scene.base_vertices(obj), scene.base_triangles(obj), tools.surface_basis, total_mass,
+        scene.base_vertices(obj), scene.base_triangles(obj), body.surface_basis, total_mass,
         obj.rs_elastic.contact_samples)
     return contact.Contact(found, points, rows, weights, masses), indices
 
@@ -105,89 +108,75 @@ def gather(obj, blender_scene):
     """Validate and set up the simulation. Raises InputError."""
     scene.require_body(obj)
     bake.require_target(obj)
-    tools = prepared.require(obj)
-    settings = obj.rs_elastic
+    body = prepared.require(obj)
     frames = scene.frame_range(obj, blender_scene)
-    warnings = []
-    free = len(tools.pinned_nodes) == 0
-    fps = blender_scene.render.fps / blender_scene.render.fps_base
-    h = 1.0 / fps
     gravity = scene.scene_gravity(blender_scene)
     if armature.is_rigged(obj):
-        return _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings)
-    motion = object_motion(obj, blender_scene, frames)
+        return _gather_rigged(obj, blender_scene, body, frames, gravity)
+    warnings, free = [], len(body.pinned_nodes) == 0
     scale = np.array(obj.matrix_world.to_scale())
     if np.abs(scale - 1.0).max() > 1e-6:
         warnings.append(f"'{obj.name}' is scaled by {tuple(np.round(scale, 3))}: the simulation "
                         "treats its object space as metres")
-    frame_motion = None
-    if motion is not None:
-        if free:
-            raise InputError(f"'{obj.name}' is animated but has no pins: give it a Pin Group so "
-                             "its keyed motion has something to carry")
-        rotations, translations = motion
-        times = (np.array(frames) - frames[0]) * h
-        frame_motion = FrameMotion(times, rotations, translations)
-    else:
+    h = scene.frame_interval(blender_scene)
+    frame_motion = _frame_motion(obj, blender_scene, frames, h, free)
+    if frame_motion is None:
         # A still object: simulate in its own space, with gravity turned into it.
-        rotation = np.array(obj.matrix_world.to_quaternion().to_matrix())
-        gravity = rotation.T @ gravity
-    masses = tools.lumped_masses(settings.density)
-    # The volume barrier over all tets keeps the body from inverting; tets let every step check.
-    potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
-                                       tools.volumes)
-    # ... and one on the reconstruction keeps the positions the user sees from inverting.
-    potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,
-                                                      tools.tets)
+        gravity = np.array(obj.matrix_world.to_quaternion().to_matrix()).T @ gravity
     # A keyed body simulates in world space, a still one in its own object space.
     world_to_sim = (np.eye(4) if frame_motion is not None
                     else np.linalg.inv(np.array(obj.matrix_world)))
-    body_contact, _ = contact_for(obj, blender_scene, tools, frames, h, world_to_sim,
-                                  masses.sum())
-    try:
-        simulation = dynamics.Simulation(
-            tools.deformer, tools.nodes, masses, potential, h, gravity=gravity,
-            mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
-            free=free, frame_motion=frame_motion, integrator=settings.integrator.lower(),
-            substeps=settings.substeps, tets=tools.tets, contact=body_contact)
-    except ValueError as exc:          # e.g. contact samples that do not fit the basis
-        raise InputError(f"'{obj.name}': {exc}") from None
-    if settings.start_settled and free:
+    settings = settings_of(obj, blender_scene, gravity)
+    body_contact, _ = contact_for(obj, blender_scene, body, frames, h, world_to_sim,
+                                  body.lumped_masses(settings.density).sum())
+    simulation = _simulation(obj, body, settings, frame_motion=frame_motion, contact=body_contact)
+    start_settled = obj.rs_elastic.start_settled
+    if start_settled and free:
         warnings.append(f"'{obj.name}' has no pins: it falls freely, so it starts from its rest "
                         "shape (Start Settled needs pins)")
-    return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
+    return SimulationJob(obj.name, frames, simulation, body.surface_basis,
                          scene.base_vertices(obj), free, warnings,
-                         settle=settings.start_settled and not free)
+                         settle=start_settled and not free)
 
 
-def _gather_rigged(obj, blender_scene, tools, frames, h, gravity, warnings):
+def _frame_motion(obj, blender_scene, frames, h, free):
+    """The ``FrameMotion`` of a keyed (parented, constrained) body, or None for a still one."""
+    motion = object_motion(obj, blender_scene, frames)
+    if motion is None:
+        return None
+    if free:
+        raise InputError(f"'{obj.name}' is animated but has no pins: give it a Pin Group so "
+                         "its keyed motion has something to carry")
+    rotations, translations = motion
+    return FrameMotion((np.array(frames) - frames[0]) * h, rotations, translations)
+
+
+def _simulation(obj, body, settings, **loads):
+    try:
+        return problems.simulation(body, potential_for(body, obj.rs_elastic), settings, **loads)
+    except ValueError as exc:          # e.g. contact samples that do not fit the basis
+        raise InputError(f"'{obj.name}': {exc}") from None
+
+
+def _gather_rigged(obj, blender_scene, body, frames, gravity):
     """A rigged body: its flesh simulated in rest space under the rig's loads (no frame motion,
     gravity through the rig), baked as shape keys the Armature modifier carries. Its contact
     samples are skinned to the world, where the colliders are."""
-    settings = obj.rs_elastic
-    armature.require_follow_group(obj, len(tools.pinned_nodes) > 0)
-    warnings += armature.warnings_for(obj)
-    masses = tools.lumped_masses(settings.density)
-    potential = inversion.with_barrier(potential_for(tools, settings), tools.modal_rs,
-                                       tools.volumes)
-    load = armature.rig_load(obj, blender_scene, tools, frames, h, gravity, masses)
-    potential = armature.held_by_follow_weights(obj, tools, masses, potential)
-    potential = inversion.with_reconstruction_barrier(potential, tools.deformer, tools.nodes,
-                                                      tools.tets)
-    body_contact, sampled = contact_for(obj, blender_scene, tools, frames, h, np.eye(4),
+    armature.require_follow_group(obj, len(body.pinned_nodes) > 0)
+    warnings = armature.warnings_for(obj)
+    settings = settings_of(obj, blender_scene, np.zeros(3))
+    masses = body.lumped_masses(settings.density)
+    load = armature.rig_load(obj, blender_scene, body, frames, settings.h, gravity, masses)
+    body_contact, sampled = contact_for(obj, blender_scene, body, frames, settings.h, np.eye(4),
                                         masses.sum())
     placement = (None if body_contact is None
                  else armature.skinned_placement(obj, load.motion, sampled))
-    try:
-        simulation = dynamics.Simulation(
-            tools.deformer, tools.nodes, masses, potential, h, gravity=np.zeros(3),
-            mass_damping=settings.damping_mass, stiffness_damping=settings.damping_stiffness,
-            integrator=settings.integrator.lower(), substeps=settings.substeps, tets=tools.tets,
-            external_force=load.force, contact=body_contact, sample_placement=placement)
-    except ValueError as exc:          # e.g. contact samples that do not fit the basis
-        raise InputError(f"'{obj.name}': {exc}") from None
-    return SimulationJob(obj.name, frames, simulation, tools.surface_basis,
-                         scene.base_vertices(obj), False, warnings, settle=settings.start_settled)
+    simulation = _simulation(obj, body, settings, contact=body_contact, external_force=load.force,
+                             sample_placement=placement,
+                             follow_stiffness=armature.follow_stiffness(obj, body, masses))
+    return SimulationJob(obj.name, frames, simulation, body.surface_basis,
+                         scene.base_vertices(obj), False, warnings,
+                         settle=obj.rs_elastic.start_settled)
 
 
 def run(job_inputs, job):

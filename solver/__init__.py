@@ -27,7 +27,13 @@ Plain numpy / scipy / libigl functions on arrays, one concept per module:
 - ``rig``      flesh on a rig: elastic motion as a deviation from linear blend skinning.
 - ``contact``  barrier, friction and damping contact of surface samples with mesh colliders.
 - ``body``     a prepared body as arrays: its tets and embedding (volumes, lumped masses kept),
-  and the stages' results; each stage object has ``to_arrays`` / ``from_arrays``.
+  the stages' results, and the solver objects made once per body (modal RS, reconstructions,
+  pose transfer, Φ B); each stage object has ``to_arrays`` / ``from_arrays``.
+- ``preparation`` the preparation, stage by stage: mesher surface, tets, pins, modes, reduced
+  RS, energy cubature (what Prepare Body computes and the bench times).
+- ``problems`` the space-time problem and the simulation, built from a prepared body and
+  plain inputs (handle tracks, pose keys, a take; a material's potential and the loads).
+- ``poses``    render-mesh poses through a body's RS coordinates: modal fits, in-betweens.
 - ``cache``    content-keyed, atomically written ``.npz`` cache files.
 - ``meshgen``  structured box tet meshes (tests and benchmarks).
 

@@ -1,14 +1,15 @@
 """The solver's problems, built from a prepared body (``body.PreparedBody``) and plain inputs.
 
 ``spacetime_problem`` turns handle tracks, pose keys and a take into a ``SpaceTimeProblem``;
-``simulation`` turns a material and the loads into a ``dynamics.Simulation``. The Blender layer
-only reads the scene into these inputs, and the bench and the tests call the same functions.
+``simulation`` turns a material's potential and the loads into a ``dynamics.Simulation``. The
+Blender layer only reads the scene into these inputs, and the bench and the tests call the same
+functions.
 """
 import dataclasses
 
 import numpy as np
 
-from . import accuracy, poses, spacetime
+from . import accuracy, dynamics, fem, inversion, materials, poses, rig, spacetime
 
 
 @dataclasses.dataclass
@@ -176,3 +177,53 @@ def handle_stretch_demands(body, rest_centroids, tracks):
         body.nodes, body.tets, body.pinned_nodes, np.asarray(rest_centroids),
         [track.frames for track in tracks], [track.targets for track in tracks])
     return [(float(d), int(f)) for d, f in zip(demands, frames)]
+
+
+# --- simulation ---------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class SimulationSettings:
+    """How a body is simulated (its simulation settings, as plain numbers)."""
+    h: float                          # s per frame
+    density: float                    # kg/m^3
+    gravity: tuple = (0.0, 0.0, 0.0)  # m/s^2, in the simulation's space
+    damping_mass: float = 0.0         # Rayleigh alpha [1/s]
+    damping_stiffness: float = 0.0    # Rayleigh beta [s]
+    integrator: str = "newmark"       # or "implicit_euler"
+    substeps: int = 0                 # steps per frame; 0: from the highest mode frequency
+
+
+def linear_potential(body, youngs, poisson):
+    """The Linear material's reduced potential on the body (an exact quadratic form), made once
+    per Young's modulus [Pa] and Poisson's ratio and kept on the body."""
+    kept = body.__dict__.setdefault("_linear_potentials", {})
+    if (youngs, poisson) not in kept:
+        mu, lam = fem.lame_parameters(youngs, poisson)
+        kept[youngs, poisson], _ = materials.prepare_potential(materials.Linear(mu, lam),
+                                                               body.modal_rs, body.volumes)
+    return kept[youngs, poisson]
+
+
+def simulation(body, potential, settings, frame_motion=None, contact=None, external_force=None,
+               sample_placement=None, follow_stiffness=None):
+    """The ``dynamics.Simulation`` of a prepared body with its material's reduced ``potential``.
+
+    Every simulation carries two volume barriers: one on each tet's RS stretch, which keeps the
+    body from inverting, and one on the reconstruction, which keeps the positions the user sees
+    from inverting; and every step checks every tet. A body without pins is free (it falls and
+    spins). frame_motion: a keyed body's ``frames.FrameMotion``; contact: a ``contact.Contact``;
+    external_force, sample_placement: a rig's loads and contact placement (``dynamics``);
+    follow_stiffness: (N,) a rig's springs holding the flesh to the bones (``rig``).
+    """
+    potential = inversion.with_barrier(potential, body.modal_rs, body.volumes)
+    if follow_stiffness is not None:
+        potential = rig.HeldPotential(potential, body.deformer, follow_stiffness)
+    potential = inversion.with_reconstruction_barrier(potential, body.deformer, body.nodes,
+                                                      body.tets)
+    return dynamics.Simulation(
+        body.deformer, body.nodes, body.lumped_masses(settings.density), potential, settings.h,
+        gravity=settings.gravity, mass_damping=settings.damping_mass,
+        stiffness_damping=settings.damping_stiffness, free=len(body.pinned_nodes) == 0,
+        frame_motion=frame_motion, integrator=settings.integrator, substeps=settings.substeps,
+        tets=body.tets, contact=contact, external_force=external_force,
+        sample_placement=sample_placement)

@@ -7,9 +7,10 @@ coordinates of poses the modes made come back; an interpolation returns its end 
 """
 import numpy as np
 import pytest
+import scipy.sparse.linalg as spla
 
 from solver import body as body_module
-from solver import embed, fem, meshgen, modes, poses, problems, reduced, rs, spacetime
+from solver import embed, fem, meshgen, modes, poses, preparation, problems, reduced, rs, spacetime
 
 SIZE = (4.0, 1.0, 1.0)
 
@@ -138,3 +139,51 @@ def test_an_interpolation_gives_back_its_end_poses_and_holds_the_pins(bar):
     pinned = body.displacement_embedding[:, body.pinned_nodes].getnnz(axis=1) > 0
     np.testing.assert_allclose(out[1][pinned], rest[pinned], atol=1e-9)
     assert inverted == 0
+
+
+# --- simulation ------------------------------------------------------------------------------
+
+def test_a_free_body_falls_as_free_fall_says(bar):
+    """No pins: the simulation's body is free; after 12 frames under g its centre of mass has
+    dropped g t^2 / 2 (the potential is translation-invariant, nothing else acts)."""
+    pinned_body, rest = bar
+    free = preparation.prepare_body(pinned_body.nodes, pinned_body.tets, rest, 1e6, 0.45,
+                                    1000.0, 6, settings=preparation.ReducedSettings(
+                                        basis_size=40, cubature_tets=60))
+    settings = problems.SimulationSettings(h=1.0 / 24.0, density=1000.0, gravity=(0.0, 0.0, -9.81))
+    sim = problems.simulation(free, problems.linear_potential(free, 1e6, 0.45), settings)
+    assert sim.free
+    trajectory = sim.run(12)
+    masses = free.lumped_masses(1000.0)
+    positions = trajectory.world_positions(free.nodes, free.deformer.basis)
+    drop = (masses @ positions[-1] - masses @ positions[0]) / masses.sum()
+    t = 12 / 24.0
+    print(f"drop {drop[2]:.6f} m, free fall {-0.5 * 9.81 * t ** 2:.6f} m")
+    np.testing.assert_allclose(drop, [0.0, 0.0, -0.5 * 9.81 * t ** 2], rtol=1e-6, atol=1e-9)
+
+
+def test_a_pinned_bar_settles_where_the_full_static_solution_puts_its_tip(bar):
+    """Static equilibrium of the simulation under gravity against the full-space linear FEM
+    solution K u = f (scipy's sparse solve over every free node): a soft bar's tip sags by a few
+    per cent of its length, which the first modes carry."""
+    body, rest = bar
+    youngs = 2e7
+    linear = preparation.linear_modes(body.tet_body, youngs, 0.45, 1000.0, 6, body.pinned_nodes)
+    soft = body_module.PreparedBody(body.tet_body, linear, preparation.reduced_deformer(
+        body.tet_body, linear, 1000.0, preparation.ReducedSettings()))
+    settings = problems.SimulationSettings(h=1.0 / 24.0, density=1000.0, gravity=(0.0, 0.0, -9.81))
+    sim = problems.simulation(soft, problems.linear_potential(soft, youngs, 0.45), settings)
+    sim.static_equilibrium()
+    sag = (soft.deformer.basis @ sim.q).reshape(-1, 3)
+    X, T = soft.nodes, soft.tets
+    K = fem.stiffness_matrix(X, T, youngs, 0.45)
+    f = np.zeros((len(X), 3))
+    f[:, 2] = -9.81 * soft.lumped_masses(1000.0)
+    free = np.setdiff1d(np.arange(3 * len(X)), (3 * soft.pinned_nodes[:, None] + np.arange(3)).ravel())
+    u = np.zeros(3 * len(X))
+    u[free] = spla.spsolve(K.tocsc()[free][:, free], f.ravel()[free])
+    tip = np.flatnonzero(X[:, 0] > 4.0 - 1e-9)
+    full, reduced_ = u.reshape(-1, 3)[tip, 2].mean(), sag[tip, 2].mean()
+    print(f"tip sag: reduced {reduced_:.5f} m, full FEM {full:.5f} m")
+    assert full < -0.02                                   # a real sag, a percent of the length
+    assert abs(reduced_ / full - 1.0) < 0.03

@@ -1,0 +1,132 @@
+"""The preparation of a body, stage by stage, on arrays: what Prepare Body computes.
+
+1. ``tet_mesh``: the surface fTetWild meshes (a simplified closed proxy of a dense surface,
+   ``proxy``) and its tet mesh (``tetmesh``), with the render mesh embedded (``embed``).
+2. ``surface_pins``: the pinned nodes and the embedding that holds pinned vertices
+   (``embed.pin_surface``).
+3. ``linear_modes``: stiffness, lumped masses and the modes for the material and pins.
+4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``).
+5. ``energy_potential``: the energy cubature of a StVK or Fung material (``materials``).
+
+Each stage is a plain function of the one before, so the Blender layer can cache each result
+under its own content key, and the bench times exactly what Prepare runs.
+"""
+import dataclasses
+
+import numpy as np
+
+from . import embed, fem, materials, modes, proxy, reduced, rig, rs, tetmesh
+from .body import PreparedBody, TetBody
+
+# How the energy cubature is trained (``materials.prepare_potential``).
+ENERGY_TRAINING = dict(num_poses=200, max_tets=200, tol=1e-4, max_rotation=np.pi / 2, seed=0)
+
+
+@dataclasses.dataclass
+class MeshingSettings:
+    edge_length: float = 0.05          # fraction of the bounding-box diagonal
+    envelope: float = 1e-3             # fraction of the bounding-box diagonal
+    proxy_triangles: int = 0           # 0: ``proxy.triangle_budget`` of the edge length
+
+
+@dataclasses.dataclass
+class ReducedSettings:
+    basis_size: int = 0                # 0: automatic (``reduced.default_basis_size``)
+    cubature_tets: int = 150
+    cubature_tolerance: float = 0.002
+    training_poses: int = 80
+
+
+def mesher_surface(V, F, settings, say=lambda fraction, message: None):
+    """(V, F, closed) of the surface fTetWild meshes: (V, F) (m, 3) itself, or its simplified
+    closed proxy when it has more triangles than the budget. ``closed`` is False when a dense
+    surface could not be simplified (not a closed manifold), so it is meshed whole."""
+    budget = settings.proxy_triangles or proxy.triangle_budget(V, F, settings.edge_length)
+    closed = True
+    if len(F) > budget:
+        say(0.02, f"Simplifying {len(F):,} triangles to a {budget:,}-triangle proxy")
+        V, F, closed = proxy.proxy_surface(V, F, budget)
+    return V, F, closed
+
+
+def tet_mesh(V, F, settings, should_cancel=None):
+    """(X (N, 3), T (E, 4)) of fTetWild's tet mesh of the surface (V, F) (``mesher_surface``'s).
+    Raises ``tetmesh.TetMeshError``."""
+    return tetmesh.tetrahedralize(V, F, edge_length_fac=settings.edge_length,
+                                  epsilon=settings.envelope, should_cancel=should_cancel)
+
+
+def embedded(X, T, base_vertices):
+    """The ``TetBody`` of a tet mesh with the render mesh's vertices (n, 3) embedded."""
+    return TetBody(X, T, embed.embed_points(X, T, base_vertices))
+
+
+def surface_pins(tet_body, base_vertices, base_triangles, pin_weights, envelope,
+                 holds_volume=False):
+    """``embed.SurfacePins`` of the render vertices' pin weights (n,) in [0, 1].
+
+    holds_volume: a rig's Follow Rig weights hold the flesh they paint, so they are carried
+    into the volume (``rig.node_values``), as its springs below 0.5 are. fTetWild's surface
+    strays up to the envelope from the mesh: twice that still finds the tet-surface nodes of a
+    painted face (``embed.PIN_TOLERANCE`` is this for the default envelope).
+    """
+    X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
+    carried = rig.node_values(Phi, pin_weights, X, T)[:, 0] if holds_volume else None
+    return embed.pin_surface(X, T, Phi, base_vertices, base_triangles, pin_weights,
+                             threshold=0.5, tolerance=2.0 * envelope, node_weights=carried)
+
+
+def linear_modes(tet_body, youngs, poisson, density, count, pinned=None):
+    """``modes.LinearModes``: ``count`` modes of the tet body for Young's modulus [Pa],
+    Poisson's ratio and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free).
+    ValueError when the pins hold every node or the material is not stable."""
+    if pinned is not None and len(pinned) >= len(tet_body.nodes):
+        raise ValueError("the pins hold every tet node: nothing is left free to move")
+    K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, youngs, poisson)
+    return modes.linear_modes(K, tet_body.lumped_masses(density), count, pinned,
+                              rest_positions=tet_body.nodes)
+
+
+def cubature_size(settings, num_nodes, num_tets, num_modes):
+    """Cubature tets: the setting, raised to ``reduced.default_cubature_size`` of the automatic
+    basis when the basis size is automatic, since that basis grows as O(modes^2)."""
+    if settings.basis_size:
+        return settings.cubature_tets
+    automatic = reduced.default_basis_size(num_modes, num_nodes=num_nodes, num_tets=num_tets)
+    return max(settings.cubature_tets, reduced.default_cubature_size(automatic, num_tets=num_tets))
+
+
+def reduced_deformer(tet_body, linear_modes, density, settings,
+                     progress=lambda fraction, message: None):
+    """The reduced RS deformer (``reduced.ReducedRS``) of the modes, trained on poses up to 180 deg;
+    progress(fraction in [0, 1], message)."""
+    X, T = tet_body.nodes, tet_body.tets
+    pinned = linear_modes.pinned_nodes
+    recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned if len(pinned) else None)
+    deformer, _ = reduced.prepare_reduced_rs(
+        X, T, tet_body.lumped_masses(density), linear_modes.vectors, linear_modes.eigenvalues,
+        recon, max_size=settings.basis_size or None,
+        max_tets=cubature_size(settings, len(X), len(T), linear_modes.vectors.shape[1]),
+        tol=settings.cubature_tolerance, num_poses=settings.training_poses, progress=progress)
+    return deformer
+
+
+def energy_potential(body, material, progress=lambda fraction, message: None):
+    """The energy cubature (``materials.ReducedPotential``) of a StVK or Fung ``material`` on
+    the prepared body, trained as ``ENERGY_TRAINING`` says."""
+    potential, _ = materials.prepare_potential(
+        material, body.modal_rs, body.volumes, eigenvalues=body.linear_modes.eigenvalues,
+        **ENERGY_TRAINING, progress=progress)
+    return potential
+
+
+def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinned=None,
+                 pinned_embedding=None, settings=None):
+    """A ``PreparedBody`` of a tet mesh in one call (no cache): the render vertices (n, 3)
+    embedded; pinned (p,) node indices held (None: a free body) and pinned_embedding the
+    render vertices' displacement embedding that holds them (``embed.SurfacePins``; None: the
+    plain embedding); settings the ``ReducedSettings`` (defaults if None)."""
+    tet_body = embedded(X, T, base_vertices)
+    linear = linear_modes(tet_body, youngs, poisson, density, num_modes, pinned)
+    deformer = reduced_deformer(tet_body, linear, density, settings or ReducedSettings())
+    return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding)
