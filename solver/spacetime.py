@@ -273,8 +273,6 @@ class SpaceTimeProblem:
             raise ValueError(f"material_freedom must be >= 1 (got {self.material_freedom})")
         if self.material_weight is not None and not self.material_weight >= 0.0:
             raise ValueError(f"material_weight must be >= 0 (got {self.material_weight})")
-        if self.fix_start and self.frames < 4:
-            raise ValueError("with a fixed start at least 4 frames are needed")
         for name, c in (("handle", self.handles), ("keyframe", self.keyframes)):
             if c is not None and len(c) and (c.frames.min() < 0 or c.frames.max() >= self.frames):
                 raise ValueError(f"{name} frames must lie in [0, {self.frames})")

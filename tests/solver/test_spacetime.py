@@ -252,6 +252,38 @@ def test_gauss_newton_solves_a_quadratic_problem_in_one_step():
     assert abs(warm.objective - one.objective) <= 1e-9 * one.objective
 
 
+def test_three_frames_with_a_fixed_start_solve_their_one_free_frame():
+    """Frames 0 and 1 are the start at rest and frame 2 is the only unknown: E_f has the one
+    residual row c z_2 (c = 1/h^2 + d/2h per mode, central scheme), so the minimum of
+    E_f + gamma E_c is the least squares of that row and the handle on frame 2."""
+    rng = np.random.default_rng(5)
+    r, h = 3, 1.0 / 24.0
+    eigenvalues = np.array([6.0, 40.0, 150.0])
+    damping = st.rayleigh_damping(eigenvalues, 0.1, 0.002)
+    rows = rng.normal(scale=0.05, size=(1, 3, r))
+    target = np.array([0.3, -0.2, 0.1])
+    handles = st.HandleConstraints([2], rows, np.zeros((1, 3)), [target], 1.0)
+    gamma, _ = st.suggest_weights(h, eigenvalues, damping, reduced.LinearDeformer(r), rows)
+    problem = st.SpaceTimeProblem(3, h, eigenvalues, damping, reduced.LinearDeformer(r),
+                                  handles=handles, gamma=gamma)
+    assert problem.scheme == "central" and problem.first_free == 2
+    c = 1.0 / h ** 2 + damping / (2.0 * h)
+    A = rows[0]
+    expected = np.linalg.solve(np.diag(c ** 2) + gamma * A.T @ A, gamma * A.T @ target)
+    for options in ({}, {"continuation": False}):
+        result = st.solve(problem, **options)
+        assert result.converged, result.reason
+        np.testing.assert_array_equal(result.Z[:2], 0.0)
+        error = np.abs(result.Z[2] - expected).max() / np.abs(expected).max()
+        print(f"3 frames {options}: relative error {error:.1e}, handle residual "
+              f"{result.handle_residuals[0]:.1e} m")
+        assert error < 1e-10
+    met = st.solve(problem, exact_handles=True)
+    assert met.converged and met.handle_residuals[0] < 1e-9 * np.linalg.norm(target)
+    with pytest.raises(ValueError, match="at least 3 frames"):
+        st.SpaceTimeProblem(2, h, eigenvalues, damping, reduced.LinearDeformer(r))
+
+
 def dense_constrained_solution(problem):
     """Minimiser of E_f subject to every handle met exactly (q = z), by its KKT system."""
     A = dense_control_rows(problem)
