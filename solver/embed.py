@@ -52,6 +52,8 @@ def pinned_nodes_from_vertices(Phi, vertex_mask):
     return np.unique(rows.indices[rows.data != 0.0]).astype(np.int64)
 
 
+PIN_THRESHOLD = 0.5   # a render vertex weighted this much or more in a pin group is pinned
+
 # How much nearer the whole render surface a tet-surface node may be than the pinned faces and
 # still be pinned, as a fraction of the render mesh's bounding-box diagonal. fTetWild puts the
 # tet surface anywhere within its envelope (default 1e-3 of the diagonal) of the render surface,
@@ -78,8 +80,8 @@ class SurfacePins:
     clamped: np.ndarray
 
 
-def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=0.5, tolerance=PIN_TOLERANCE,
-                node_weights=None):
+def pin_surface(X, T, Phi, vertices, triangles, weights, threshold=PIN_THRESHOLD,
+                tolerance=PIN_TOLERANCE, node_weights=None):
     """-> SurfacePins: the tet nodes a pin group holds and the embedding that holds its vertices.
 
     X (N,3) tet nodes, T (E,4) tets, Phi (n,N) csr exact embedding of the render vertices

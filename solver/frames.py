@@ -61,6 +61,16 @@ class FrameMotion:
         return self._slerp([t]).as_matrix()[0], c
 
 
+def polar_decomposition(linear):
+    """linear (..., 3, 3) = Q P: Q (..., 3, 3) orthogonal, P (..., 3, 3) symmetric positive
+    semi-definite (the stretch: scale and shear), from the SVD U diag(s) V^T as Q = U V^T,
+    P = V diag(s) V^T. det Q has the sign of det(linear): a mirroring matrix gives a reflection
+    Q (det -1), which no rotation can stand for; the caller decides where the mirror goes."""
+    U, s, Vt = np.linalg.svd(np.asarray(linear, dtype=np.float64))
+    V = np.swapaxes(Vt, -1, -2)
+    return U @ Vt, (V * s[..., None, :]) @ Vt
+
+
 def best_rotation(K):
     """argmax over rotations of tr(R^T K) for K (3, 3), and that maximum."""
     U, sv, Vt = np.linalg.svd(K)

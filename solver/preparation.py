@@ -73,7 +73,8 @@ def surface_pins(tet_body, base_vertices, base_triangles, pin_weights, envelope,
     X, T, Phi = tet_body.nodes, tet_body.tets, tet_body.embedding
     carried = rig.node_values(Phi, pin_weights, X, T)[:, 0] if holds_volume else None
     return embed.pin_surface(X, T, Phi, base_vertices, base_triangles, pin_weights,
-                             threshold=0.5, tolerance=2.0 * envelope, node_weights=carried)
+                             threshold=embed.PIN_THRESHOLD, tolerance=2.0 * envelope,
+                             node_weights=carried)
 
 
 def linear_modes(tet_body, youngs, poisson, density, count, pinned=None):

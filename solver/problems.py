@@ -12,6 +12,10 @@ import numpy as np
 from . import accuracy, dynamics, fem, inversion, materials, poses, rig, spacetime
 
 
+class NothingToSolve(ValueError):
+    """A space-time edit without a handle, pose key or take frame in its range."""
+
+
 @dataclasses.dataclass
 class HandleTrack:
     """One handle's targets, in the body's object space (its rest frame)."""
@@ -126,7 +130,7 @@ def spacetime_problem(body, rest, frames, tracks=(), pose_keys=(), take=None, se
     poses (k, n, 3)) followed softly where nothing else constrains, or None;
     settings: ``SpaceTimeSettings``; external_forces: None, or a function (times (F,) [s],
     dq/dz at rest (rB, m)) -> (F, m) modal forces (a rig's loads). Returns a ``SpaceTimeSetup``;
-    ValueError when there is nothing to solve for.
+    ``NothingToSolve`` (a ValueError) when there is nothing to solve for.
     """
     first, count = frames[0], len(frames)
     parts, slices, centroids, warnings = handle_parts(body, rest, tracks, first)
@@ -137,7 +141,7 @@ def spacetime_problem(body, rest, frames, tracks=(), pose_keys=(), take=None, se
         take_frames = [take[0][i] for i in inside]
         take_poses = [take[1][i] for i in inside]
     if not parts and not take_frames:
-        raise ValueError("nothing to solve for")
+        raise NothingToSolve("nothing to solve for")
 
     candidates = body.deformer.num_coords
     optimised = optimised_modes(candidates) if settings.optimize_material else candidates
