@@ -23,7 +23,7 @@ import functools
 import bpy
 import numpy as np
 
-from ..solver import cache, fem, materials, preparation, tetmesh
+from ..solver import cache, embed, fem, materials, preparation, tetmesh
 from ..solver.body import PreparedBody
 from . import armature, mesh_cache, scene, stage_cache, staleness
 from .jobs import Cancelled, Job
@@ -179,10 +179,7 @@ def read_inputs(obj, depsgraph, with_material=True):
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if settings.pin_group:
-        weights = np.clip(scene.pin_weights(obj, settings.pin_group), 0.0, 1.0)
-        if not weights.any():
-            raise InputError(f"Pin group '{settings.pin_group}' has no vertices; "
-                             "clear Pin Group for a free body")
+        weights = _pin_weights(obj, settings.pin_group)
         if weights.all():
             raise InputError(f"Every vertex of '{obj.name}' is in pin group "
                              f"'{settings.pin_group}': nothing is left free to move")
@@ -199,6 +196,26 @@ def read_inputs(obj, depsgraph, with_material=True):
     inputs.cubature_tolerance = settings.cubature_tolerance
     inputs.training_poses = settings.training_poses
     return inputs
+
+
+def _pin_weights(obj, group):
+    """(n,) float32 weights of the pin group in [0, 1]; InputError for a group that pins nothing
+    (no vertex at ``embed.PIN_THRESHOLD`` or more) or holds a weight that is not a number."""
+    weights = scene.pin_weights(obj, group)
+    if not np.isfinite(weights).all():
+        vertex = int(np.flatnonzero(~np.isfinite(weights))[0])
+        raise InputError(f"Pin group '{group}' has a weight that is not a number (vertex "
+                         f"{vertex}): paint it again")
+    weights = np.clip(weights, 0.0, 1.0)
+    if not weights.any():
+        raise InputError(f"Pin group '{group}' has no vertices; clear Pin Group for a free body")
+    threshold = embed.PIN_THRESHOLD
+    if not (weights >= threshold).any():
+        raise InputError(f"Pin group '{group}' pins nothing: only vertices weighted "
+                         f"{threshold:g} or more are pinned, and its largest weight is "
+                         f"{weights.max():.2g}; paint the pinned part {threshold:g} or more, or "
+                         "clear Pin Group for a free body")
+    return weights
 
 
 # --- the stages (worker-thread safe: no bpy) ------------------------------------------------------

@@ -4,12 +4,14 @@ Main thread only. Everything is returned in the simulation's space (``gather`` i
 ``simulation_inputs``): the body's own object space for a still body, world space for a body on
 keyed motion. Times are seconds from the first simulated frame.
 """
+import math
+
 import bpy
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..solver import contact
-from . import scene
+from . import scene, transforms
 from .scene import InputError
 
 
@@ -62,17 +64,10 @@ def collider_objects(body, blender_scene):
 
 
 def _sampled_matrices(objects, blender_scene, frames):
-    """(objects, F, 4, 4) world matrices of each object at each frame (one frame_set per frame)."""
-    current = blender_scene.frame_current
-    matrices = np.empty((len(objects), len(frames), 4, 4))
-    try:
-        for f, frame in enumerate(frames):
-            blender_scene.frame_set(frame)
-            for i, obj in enumerate(objects):
-                matrices[i, f] = np.array(obj.matrix_world)
-    finally:
-        blender_scene.frame_set(current)
-    return matrices
+    """(objects, F, 4, 4) world matrices of each collider at each frame (one frame_set per
+    frame); InputError naming a collider whose transform is not finite on a frame."""
+    return transforms.world_matrices(objects, blender_scene, frames,
+                                     [f"collider '{obj.name}'" for obj in objects])
 
 
 def scene_colliders(body, blender_scene, frames, h, world_to_sim):
@@ -81,6 +76,7 @@ def scene_colliders(body, blender_scene, frames, h, world_to_sim):
     world_to_sim (4, 4): world space to the simulation's space. Each collider's evaluated mesh
     (its modifiers applied) is read once at the current frame; only its object transform moves it
     (keys, parents, constraints); a collider that deforms is seen in its current shape.
+    InputError for a collider whose transform, mesh or settings are not finite numbers.
     """
     objects = collider_objects(body, blender_scene)
     if not objects:
@@ -91,19 +87,36 @@ def scene_colliders(body, blender_scene, frames, h, world_to_sim):
     colliders = []
     for obj, per_frame in zip(objects, matrices):
         V, F = scene.evaluated_triangles(obj, depsgraph)
+        options = _collision_options(obj)
+        if not np.isfinite(V).all():
+            raise InputError(f"Collider '{obj.name}': its mesh has positions that are not finite "
+                             "numbers")
         to_sim = world_to_sim @ per_frame                                    # (F, 4, 4)
-        settings = obj.collision
-        options = dict(thickness=float(settings.thickness_outer),
-                       # Blender's cloth collisions read this field as Coulomb mu = value / 100.
-                       friction=float(settings.cloth_friction) / 100.0,
-                       damping=float(settings.damping), name=obj.name)
         if np.abs(to_sim - to_sim[0]).max() < 1e-9:                         # static
             V_sim = V @ to_sim[0, :3, :3].T + to_sim[0, :3, 3]
+            if np.linalg.det(to_sim[0, :3, :3]) < 0.0:     # mirrored: keep the outside outside
+                F = F[:, ::-1]
             colliders.append(contact.MeshCollider(V_sim, F, **options))
         else:
             colliders.append(contact.MeshCollider(V, F, motion=AffineMotion(times, to_sim),
                                                   **options))
     return colliders
+
+
+def _collision_options(obj):
+    """MeshCollider's keyword options from the object's Collision settings; InputError for one
+    that is not a finite number."""
+    settings = obj.collision
+    for name in ("thickness_outer", "cloth_friction", "damping"):
+        value = float(getattr(settings, name))
+        if not math.isfinite(value):
+            label = settings.bl_rna.properties[name].name
+            raise InputError(f"Collider '{obj.name}': its {label} is {value:g}; it must be a "
+                             "finite number")
+    return dict(thickness=float(settings.thickness_outer),
+                # Blender's cloth collisions read this field as Coulomb mu = value / 100.
+                friction=float(settings.cloth_friction) / 100.0,
+                damping=float(settings.damping), name=obj.name)
 
 
 def contact_samples(rest, triangles, rows, total_mass, count):

@@ -4,7 +4,7 @@ import numpy as np
 
 from ..solver import spacetime
 from ..solver.problems import HandleTrack
-from . import animation, bake, scene
+from . import animation, bake, scene, transforms
 
 
 ROTATION_PATHS = ("rotation_euler", "rotation_quaternion", "rotation_axis_angle")
@@ -49,6 +49,9 @@ def read_handles(obj, blender_scene, frames):
         if len(indices) == 0:
             warnings.append(f"{label}: vertex group '{handle.vertex_group}' is empty; ignored")
             continue
+        if handle.weight == 0.0:        # a documented meaning: weight 0 switches a handle off
+            warnings.append(f"{label}: its weight is 0, so it is ignored")
+            continue
         if handle.follow:
             wanted = sorted(frame_set)
         else:
@@ -84,36 +87,43 @@ def _fastest_turn(track):
     return float(np.arccos(np.clip(0.5 * (trace - 1.0), -1.0, 1.0)).max())
 
 
-def _rotation(matrix):
-    """(3, 3) rotation part (scale removed) of a Blender matrix."""
-    return np.array(matrix.to_quaternion().to_matrix())
-
-
 def _world_to_body(obj, blender_scene, plans, first):
     """Each plan's Empty positions on its frames, in the body's object space at that frame, and
-    its rotations on its orientation frames: O(f) O(first)^T, O = (body rotation)^T (Empty
-    rotation), i.e. the turn since the range's first frame, where the body is at rest."""
+    its rotations on its orientation frames: O(f) O(first)^T, O = Qb^T Qe, Qb and Qe the
+    orthogonal polar factors of the body's and the Empty's transforms (scale dropped), i.e. the
+    turn since the range's first frame, where the body is at rest. A mirrored body's Qb is a
+    reflection; O(f) O(first)^T is then the Empty's turn conjugated by it, a proper rotation: the
+    mirror image of the turn, as the body's own space sees it. InputError for a transform that
+    is not finite, or a body scaled to zero, on a frame read."""
     needed = sorted({int(f) for plan in plans for f in np.r_[plan[3], plan[4]]}
                     | ({int(first)} if any(len(plan[4]) for plan in plans) else set()))
-    current = blender_scene.frame_current
-    at_frame, turned = {}, {}
-    try:
-        for frame in needed:       # one scene evaluation per frame, shared by all handles
-            blender_scene.frame_set(frame)
-            to_body = np.array(obj.matrix_world.inverted())
-            body = _rotation(obj.matrix_world)
-            at_frame[frame] = {empty.name: (to_body @ np.r_[np.array(empty.matrix_world.translation), 1.0])[:3]
-                               for empty, *_ in plans}
-            turned[frame] = {empty.name: body.T @ _rotation(empty.matrix_world)
-                             for empty, *_ in plans}
-    finally:
-        blender_scene.frame_set(current)
-    targets = [np.array([at_frame[int(f)][empty.name] for f in wanted]).reshape(-1, 3)
-               for empty, _, _, wanted, _ in plans]
-    rotations = [np.array([turned[int(f)][empty.name] @ turned[int(first)][empty.name].T
-                           for f in turning]).reshape(-1, 3, 3)
-                 for empty, _, _, _, turning in plans]
+    if not needed:
+        return [np.zeros((0, 3)) for _ in plans], [np.zeros((0, 3, 3)) for _ in plans]
+    empties = [plan[0] for plan in plans]
+    matrices = transforms.world_matrices(                # one scene evaluation per frame
+        [obj] + empties, blender_scene, needed,
+        [f"'{obj.name}'"] + [f"handle '{empty.name}'" for empty in empties])
+    transforms.require_invertible(f"'{obj.name}'", matrices[0], needed)
+    row = {frame: i for i, frame in enumerate(needed)}
+    to_body = np.linalg.inv(matrices[0])                                     # (F, 4, 4)
+    targets, rotations = [], []
+    for i, (empty, _, _, wanted, turning) in enumerate(plans, start=1):
+        at = [row[int(f)] for f in wanted]
+        targets.append(np.einsum("fij,fj->fi", to_body[at, :3, :3], matrices[i, at, :3, 3])
+                       + to_body[at, :3, 3])
+        rotations.append(_turns(obj, empty, matrices[0], matrices[i], needed,
+                                [row[int(f)] for f in turning], row.get(int(first))))
     return targets, rotations
+
+
+def _turns(obj, empty, body, handle, frames, turning, first):
+    """(o, 3, 3) the Empty's turns O(f) O(first)^T on the rows `turning` of the transforms
+    (F, 4, 4) sampled on `frames` (see ``_world_to_body``)."""
+    if not turning:
+        return np.zeros((0, 3, 3))
+    turned = (np.swapaxes(transforms.orthogonal_parts(f"'{obj.name}'", body, frames)[0], 1, 2)
+              @ transforms.orthogonal_parts(f"handle '{empty.name}'", handle, frames)[0])
+    return turned[turning] @ turned[first].T
 
 
 def read_pose_keys(obj, frames):

@@ -98,8 +98,13 @@ def frame_range(obj, blender_scene):
 
 
 def frame_interval(blender_scene):
-    """h [s]: the time from one frame to the next at the scene's frame rate."""
-    return blender_scene.render.fps_base / blender_scene.render.fps
+    """h [s]: the time from one frame to the next at the scene's frame rate. InputError for a
+    rate that is not a finite, positive number (Blender keeps a NaN frame-rate base)."""
+    fps, base = blender_scene.render.fps, blender_scene.render.fps_base
+    if not (math.isfinite(base) and base > 0.0 and fps > 0):
+        raise InputError(f"The scene's frame rate ({fps} / {base:g} frames per second) is not a "
+                         "finite, positive number")
+    return base / fps
 
 
 GRAVITY_LIMIT = 1000.0    # m/s², about 100 g
@@ -142,12 +147,17 @@ def key_block_positions(block):
 
 
 def shape_key_positions(obj, name):
-    """(n, 3) float64 positions of the object's shape key ``name``; InputError if it has none."""
+    """(n, 3) float64 positions of the object's shape key ``name``; InputError if it has none,
+    or if they are not finite numbers."""
     keys = obj.data.shape_keys
     block = keys.key_blocks.get(name) if keys is not None else None
     if block is None:
         raise InputError(f"'{name}' is not a shape key of '{obj.name}'")
-    return key_block_positions(block)
+    positions = key_block_positions(block)
+    if not np.isfinite(positions).all():
+        raise InputError(f"Shape key '{name}' of '{obj.name}' holds positions that are not "
+                         "finite numbers: fix or delete it")
+    return positions
 
 
 def base_triangles(obj):

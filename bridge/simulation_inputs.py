@@ -6,7 +6,7 @@ import numpy as np
 from ..solver import contact, dynamics, problems
 from ..solver.frames import FrameMotion
 from . import (armature, bake, bodies, colliders, jobs, prepared, scene,
-               stage_cache)
+               stage_cache, transforms)
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -23,23 +23,39 @@ class SimulationJob:
     settle: bool = False    # start at rest in static equilibrium (Start Settled)
 
 
-def object_motion(obj, blender_scene, frames):
-    """(rotations (F, 3, 3), translations (F, 3)) of the object's world transform per frame, or
-    None if it does not move over the range (keys, parents and constraints all count)."""
-    current = blender_scene.frame_current
-    matrices = []
-    try:
-        for frame in frames:
-            blender_scene.frame_set(frame)
-            matrices.append(np.array(obj.matrix_world))
-    finally:
-        blender_scene.frame_set(current)
-    matrices = np.array(matrices)
+MIRROR = np.diag([1.0, 1.0, -1.0])   # the world reflection a keyed mirrored body moves in
+
+
+def body_placement(obj, blender_scene, frames, h, gravity, free):
+    """Where the simulation of a non-rigged body runs over `frames` (h [s] apart): (frame
+    motion, gravity (3,) there, world to simulation (4, 4)).
+
+    Q: the orthogonal polar factors of the body's transforms (scale and shear dropped: the
+    simulation treats object space as metres). A still body runs in its own object space under
+    gravity Q^T g (for a mirrored body Q is a reflection, and Q^T g is still where the world's
+    down is in its space). A keyed (parented, constrained) body runs in world space on a
+    ``FrameMotion`` of the rotations Q and the translations c. A mirrored body's Q is a
+    reflection, which no motion of the body can be; physics does not change in a mirror, so it
+    runs in the world mirrored by W = MIRROR, where it is carried by the rotations W Q,
+    translations W c, under gravity W g, among its colliders mirrored by W: in its own space it
+    moves exactly as it does in the real world.
+    InputError for a transform that is not finite or scaled to zero on a frame, or a keyed
+    `free` body (one without pins)."""
+    name = f"'{obj.name}'"
+    matrices = transforms.world_matrices([obj], blender_scene, frames, [name])[0]
+    transforms.require_invertible(name, matrices, frames)
+    Q, mirrored = transforms.orthogonal_parts(name, matrices, frames)
     if np.abs(matrices - matrices[0]).max() < 1e-9:
-        return None
-    linear = matrices[:, :3, :3]
-    U, _, Vt = np.linalg.svd(linear)                  # the rotation part, scale removed
-    return U @ Vt, matrices[:, :3, 3]
+        return None, Q[0].T @ gravity, np.linalg.inv(matrices[0])
+    if free:
+        raise InputError(f"'{obj.name}' is animated but has no pins: give it a Pin Group so "
+                         "its keyed motion has something to carry")
+    world = MIRROR if mirrored else np.eye(3)
+    motion = FrameMotion((np.array(frames) - frames[0]) * h, world @ Q,
+                         matrices[:, :3, 3] @ world.T)
+    world_to_sim = np.eye(4)
+    world_to_sim[:3, :3] = world
+    return motion, world @ gravity, world_to_sim
 
 
 def energy_work(obj):
@@ -114,18 +130,13 @@ def gather(obj, blender_scene):
     if armature.is_rigged(obj):
         return _gather_rigged(obj, blender_scene, body, frames, gravity)
     warnings, free = [], len(body.pinned_nodes) == 0
-    scale = np.array(obj.matrix_world.to_scale())
+    scale = np.abs(np.array(obj.matrix_world.to_scale()))      # a mirror is not a scale
     if np.abs(scale - 1.0).max() > 1e-6:
         warnings.append(f"'{obj.name}' is scaled by {tuple(np.round(scale, 3))}: the simulation "
                         "treats its object space as metres")
     h = scene.frame_interval(blender_scene)
-    frame_motion = _frame_motion(obj, blender_scene, frames, h, free)
-    if frame_motion is None:
-        # A still object: simulate in its own space, with gravity turned into it.
-        gravity = np.array(obj.matrix_world.to_quaternion().to_matrix()).T @ gravity
-    # A keyed body simulates in world space, a still one in its own object space.
-    world_to_sim = (np.eye(4) if frame_motion is not None
-                    else np.linalg.inv(np.array(obj.matrix_world)))
+    frame_motion, gravity, world_to_sim = body_placement(obj, blender_scene, frames, h,
+                                                           gravity, free)
     settings = settings_of(obj, blender_scene, gravity)
     body_contact, _ = contact_for(obj, blender_scene, body, frames, h, world_to_sim,
                                   body.lumped_masses(settings.density).sum())
@@ -137,18 +148,6 @@ def gather(obj, blender_scene):
     return SimulationJob(obj.name, frames, simulation, body.surface_basis,
                          scene.base_vertices(obj), free, warnings,
                          settle=start_settled and not free)
-
-
-def _frame_motion(obj, blender_scene, frames, h, free):
-    """The ``FrameMotion`` of a keyed (parented, constrained) body, or None for a still one."""
-    motion = object_motion(obj, blender_scene, frames)
-    if motion is None:
-        return None
-    if free:
-        raise InputError(f"'{obj.name}' is animated but has no pins: give it a Pin Group so "
-                         "its keyed motion has something to carry")
-    rotations, translations = motion
-    return FrameMotion((np.array(frames) - frames[0]) * h, rotations, translations)
 
 
 def _simulation(obj, body, settings, **loads):

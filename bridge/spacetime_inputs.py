@@ -58,9 +58,13 @@ def settings_of(obj, blender_scene):
         material_freedom=settings.material_freedom, take_weight=settings.take_weight)
 
 
-def _take(obj):
-    """(frames, poses) of the kept take when the edit follows it, else None."""
+def _take(obj, warnings):
+    """(frames, poses) of the kept take when the edit follows it, else None. A Take Weight of 0
+    means the take is not followed (said in `warnings`)."""
     if not obj.rs_elastic.use_take:
+        return None
+    if obj.rs_elastic.take_weight == 0.0:
+        warnings.append("Take Weight is 0, so the take is not followed")
         return None
     take_frames, take = bake.take_poses(obj)
     if not take_frames:
@@ -77,8 +81,10 @@ def gather(obj, blender_scene):
     frames = scene.frame_range(obj, blender_scene)
     rest = scene.base_vertices(obj)
     tracks, warnings = constraints.read_handles(obj, blender_scene, frames)
+    tracks = _movable(body, tracks, warnings)
     pose_keys = [(frame, scene.shape_key_positions(obj, name))
                  for frame, name in constraints.read_pose_keys(obj, frames)]
+    take = _take(obj, warnings)
     external = None
     if armature.is_rigged(obj):   # the edit is a deviation from the rig, in the rest pose
         tracks = _rig_tracks(obj, blender_scene, body, frames, tracks, warnings)
@@ -88,12 +94,14 @@ def gather(obj, blender_scene):
         external = load.modal_forces       # what the bones' motion and gravity do to the flesh
         settings.handle_gamma_factor = RIG_TIGHTNESS
     try:
-        setup = problems.spacetime_problem(body, rest, frames, tracks, pose_keys, _take(obj),
+        setup = problems.spacetime_problem(body, rest, frames, tracks, pose_keys, take,
                                            settings, external_forces=external)
-    except ValueError:
+    except problems.NothingToSolve:
         raise InputError(f"Nothing to solve for on '{obj.name}': key a handle's Empty, key a "
                          "shape key to 1 on a frame, or edit a take"
                          + (f" ({'; '.join(warnings)})" if warnings else "")) from None
+    except ValueError as exc:
+        raise InputError(f"'{obj.name}': {exc}") from None
     handle_index = {h.empty.name: i for i, h in enumerate(obj.rs_elastic.handles)
                     if h.empty is not None}
     return SpaceTimeJob(obj.name, frames, setup.problem, settings.optimize_material,
@@ -101,8 +109,24 @@ def gather(obj, blender_scene):
                         [(handle_index[t.name], rows) for t, rows in zip(tracks, setup.track_slices)],
                         [track.name for track in tracks],
                         problems.handle_stretch_demands(body, setup.rest_centroids, tracks),
-                        float(np.mean(obj.matrix_world.to_scale())), warnings + setup.warnings,
+                        world_scale(obj), warnings + setup.warnings,
                         exact_handles=external is not None)
+
+
+def _movable(body, tracks, warnings):
+    """The tracks whose vertices the body can move; a handle on pinned vertices alone is left
+    out (said in `warnings`): nothing can move it, and its constraint rows are zero."""
+    rows = body.surface_basis.reshape(-1, 3, body.surface_basis.shape[1])
+    movable = [bool(np.any(rows[track.vertices])) for track in tracks]
+    warnings += [f"Handle '{track.name}': all its vertices are pinned, so nothing can move it; "
+                 "ignored" for track, moves in zip(tracks, movable) if not moves]
+    return [track for track, moves in zip(tracks, movable) if moves]
+
+
+def world_scale(obj):
+    """The object's mean world scale, positive (a mirrored object's too): handle residuals are
+    reported in world metres, and a mirror changes no length."""
+    return float(np.mean(np.abs(obj.matrix_world.to_scale())))
 
 
 def _rig_tracks(obj, blender_scene, body, frames, tracks, warnings):

@@ -1,6 +1,5 @@
 """Solve a space-time edit of the active body and bake it into shape keys."""
 import bpy
-import numpy as np
 
 from ..bridge import bake, jobs, spacetime_inputs
 
@@ -28,7 +27,7 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
-        scale = float(np.mean(obj.matrix_world.to_scale()))
+        scale = inputs.world_scale          # positive, a mirrored object's too
         for handle in settings.handles:
             handle.residual = -1.0
         for index, rows in inputs.track_slices:
