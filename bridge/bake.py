@@ -212,8 +212,9 @@ def clear_bake(obj):
 
 
 def _frame_of(block, prefix):
-    digits = block.name[len(prefix):]
-    return int(digits) if block.name.startswith(prefix) and digits.isdigit() else None
+    digits = block.name[len(prefix):]           # "0042", or "-005" for a negative frame
+    return (int(digits) if block.name.startswith(prefix) and re.fullmatch(r"-?\d+", digits)
+            else None)
 
 
 def _frames_and_blocks(obj, what, prefix):

@@ -2,9 +2,10 @@
 
 `main(argv)` is the registered handler and what the tests call (the bpy module cannot take `-c`).
 Every argument is checked before any work. It prepares what is missing, solves (space-time edit)
-or simulates, bakes, saves, and returns the exit code: 0 on success, 2 with one readable line for
-a bad argument (unknown object, malformed or unbounded --frames, unusable --output), 1 with one
-line for a failure. The file is saved only after a bake succeeded.
+or simulates, bakes, and saves, and returns the exit code: 0 on success, 2 with one readable line
+for a bad argument (unknown object, malformed or unbounded --frames, unusable --output or bake
+target), 1 with one line for a failure. Saving is the last step: what it reports is read before,
+so a failure never leaves a saved file behind, and never overwrites the open file.
 """
 import argparse
 import os
@@ -13,14 +14,11 @@ import sys
 
 import bpy
 
-from . import bake
-from . import spacetime_inputs
-from .scene import MAX_FRAMES
+from . import bake, mesh_cache, spacetime_inputs
+from .properties import LAST_FRAME
+from .scene import MAX_FRAMES, InputError
 
 OPERATORS = {"spacetime": "solve_spacetime", "simulate": "simulate"}
-
-
-MAX_FRAME = 1048574       # Blender's last frame
 
 
 class UsageError(Exception):
@@ -47,9 +45,9 @@ def _parser():
     bake_cmd.add_argument("--object", required=True, help="name of the body (a mesh object)")
     bake_cmd.add_argument("--mode", choices=sorted(OPERATORS), default="spacetime",
                           help="space-time edit (default) or simulation")
-    bake_cmd.add_argument("--frames", help=f"frame range A-B, at least 3 and at most "
-                                           f"{MAX_FRAMES} frames (default: the body's or the "
-                                           "scene's)")
+    bake_cmd.add_argument("--frames", help=f"frame range A-B (negative frames too: -10-20, "
+                                           f"-20--10), at least 3 and at most {MAX_FRAMES} "
+                                           "frames (default: the body's or the scene's)")
     bake_cmd.add_argument("--bake-to", choices=("keys", "cache"), default=None,
                           help="shape keys in the .blend, or a Mesh Cache (.pc2 next to the "
                                "opened .blend, played by a Mesh Cache modifier); default: the "
@@ -58,17 +56,40 @@ def _parser():
     return parser
 
 
+def parse_arguments(argv):
+    """The parsed arguments (argparse.Namespace); UsageError for bad ones. A --frames value that
+    starts with a minus (a negative first frame) is taken as the value, not as an option."""
+    joined, rest = [], list(argv)
+    while rest:
+        arg = rest.pop(0)
+        if arg == "--frames" and rest and re.match(r"\s*-\d", rest[0]):
+            arg = f"--frames={rest.pop(0)}"
+        joined.append(arg)
+    return _parser().parse_args(joined)
+
+
 def _frame_range(text):
-    match = re.fullmatch(r"\s*(\d+)\s*-\s*(\d+)\s*", text)
+    match = re.fullmatch(r"\s*(-?\d+)\s*-\s*(-?\d+)\s*", text)
     if not match:
         raise UsageError(f"--frames must look like 1-120, got '{text}'")
     start, end = int(match.group(1)), int(match.group(2))
     if end - start + 1 < 3:
         raise UsageError(f"--frames {start}-{end} has fewer than 3 frames (start before end)")
-    if end > MAX_FRAME or end - start + 1 > MAX_FRAMES:
+    if end > LAST_FRAME or end - start + 1 > MAX_FRAMES:
         raise UsageError(f"--frames {start}-{end} is too long: at most {MAX_FRAMES} frames, "
-                         f"ending by frame {MAX_FRAME}")
+                         f"ending by frame {LAST_FRAME}")
+    if start < -LAST_FRAME:
+        raise UsageError(f"--frames {start}-{end} starts before Blender's first frame, "
+                         f"{-LAST_FRAME}")
     return start, end
+
+
+def _writable(path):
+    """Whether a file can be written at `path`: its folder is a writable folder, and a file
+    already there is writable."""
+    folder = os.path.dirname(path)
+    return (os.path.isdir(folder) and os.access(folder, os.W_OK)
+            and (not os.path.exists(path) or os.access(path, os.W_OK)))
 
 
 def _output_path(text):
@@ -76,6 +97,9 @@ def _output_path(text):
     if text is None:
         if not bpy.data.filepath:
             raise UsageError("the open file was never saved: pass --output FILE.blend")
+        if not _writable(bpy.data.filepath):
+            raise UsageError(f"cannot save over the open file {bpy.data.filepath}: it or its "
+                             "folder is not writable; pass --output FILE.blend")
         return bpy.data.filepath
     path = os.path.abspath(bpy.path.abspath(text))
     folder = os.path.dirname(path)
@@ -83,11 +107,35 @@ def _output_path(text):
         raise UsageError(f"--output must be a .blend file, got '{text}'")
     if not os.path.isdir(folder):
         raise UsageError(f"--output: the folder {folder} does not exist")
-    if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
-        raise UsageError(f"--output: {path} is not writable")
     if os.path.isdir(path):
         raise UsageError(f"--output: {path} is a folder")
+    if not _writable(path):
+        raise UsageError(f"--output: {path} is not writable")
     return path
+
+
+def _check_cache_target(obj, bake_to):
+    """A Mesh Cache bake (`bake_to` 'CACHE') writes a .pc2 next to the opened .blend
+    (``mesh_cache.bake_path``): refuse, before any work, a file never saved, or a place where
+    that file cannot be written (a folder that is not writable, or a file where a folder must
+    go)."""
+    if bake_to != 'CACHE':
+        return
+    try:
+        path = mesh_cache.bake_path(obj)
+    except InputError as exc:
+        raise UsageError(f"{exc}, or pass --bake-to keys") from None
+    existing = path
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if existing == path:
+        problem = None if _writable(path) else f"{path} is not writable"
+    else:
+        problem = (None if os.path.isdir(existing) and os.access(existing, os.W_OK)
+                   else f"{existing} is not a writable folder")
+    if problem is not None:
+        raise UsageError(f"'{obj.name}' bakes to a Mesh Cache in {path}, and {problem}: pass "
+                         "--bake-to keys, or open a copy in a writable folder")
 
 
 def _body(name):
@@ -101,39 +149,58 @@ def _body(name):
     return obj
 
 
+def _operator_error(exc):
+    """One line from the RuntimeError an operator raised: its report, or for a Python error
+    (a bug: Blender has printed its traceback) the error's last line."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    first = lines[0].removeprefix("Error: ") if lines else "unknown error"
+    if first.startswith("Python: Traceback"):
+        return f"internal error: {lines[-1]}"
+    return first
+
+
 def _run_operator(name, message):
     try:
         result = getattr(bpy.ops.rs_elastic, name)()
     except RuntimeError as exc:     # the operator reported an error
-        raise CommandError(str(exc).replace("Error: ", "").strip().splitlines()[0]) from None
+        raise CommandError(_operator_error(exc)) from None
     if result != {'FINISHED'}:
         raise CommandError(message)
 
 
+def _save(output):
+    """Save the file to `output`: the last step, after everything else has worked."""
+    try:
+        bpy.ops.wm.save_as_mainfile(filepath=output)
+    except RuntimeError as exc:
+        raise CommandError(f"could not save {output}: {_operator_error(exc)}; nothing was "
+                           "saved") from None
+
+
 def bake_command(args):
-    """Check every argument first (UsageError), then work; save only after everything worked,
-    so a failure never overwrites the open file."""
+    """Check every argument first (UsageError), then work; read the report, and save last, so
+    a failure never leaves a saved file behind or overwrites the open file."""
     obj = _body(args.object)
     frames = None if args.frames is None else _frame_range(args.frames)
     output = _output_path(args.output)
+    bake_to = obj.rs_elastic.bake_to if args.bake_to is None else args.bake_to.upper()
+    _check_cache_target(obj, bake_to)
     bpy.context.view_layer.objects.active = obj
-    if args.bake_to is not None:
-        obj.rs_elastic.bake_to = args.bake_to.upper()
+    obj.rs_elastic.bake_to = bake_to
     if frames is not None:
         obj.rs_elastic.use_scene_range = False
         obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = frames
     # Prepare is cheap when the cache is valid: it only checks and loads.
     _run_operator("prepare", f"could not prepare '{obj.name}'")
     _run_operator(OPERATORS[args.mode], f"the {args.mode} bake of '{obj.name}' did not finish")
-    try:
-        bpy.ops.wm.save_as_mainfile(filepath=output)
-    except RuntimeError as exc:
-        raise CommandError(f"could not save {output}: "
-                           f"{str(exc).replace('Error: ', '').strip().splitlines()[0]}") from None
-    frames = bake.bake_frames(obj)
+    baked = bake.bake_frames(obj)
+    if not baked:
+        raise CommandError(f"the {args.mode} bake of '{obj.name}' left no bake to save")
     status = spacetime_inputs.LAST_STATUS.get(obj.name) if args.mode == "spacetime" else None
-    return (f"baked frames {frames[0]}-{frames[-1]} of '{obj.name}' into {output}"
-            + ("" if status is None else f"\nrs_elastic: {status[1]}"))
+    report = (f"baked frames {baked[0]}-{baked[-1]} of '{obj.name}' into {output}"
+              + ("" if status is None else f"\nrs_elastic: {status[1]}"))
+    _save(output)
+    return report
 
 
 def _say_error(message):
@@ -142,8 +209,7 @@ def _say_error(message):
 
 def main(argv):
     try:
-        args = _parser().parse_args(argv)
-        message = bake_command(args)
+        message = bake_command(parse_arguments(argv))
     except SystemExit as exc:          # --help
         return int(exc.code or 0)
     except UsageError as exc:
@@ -151,6 +217,9 @@ def main(argv):
         return 2
     except CommandError as exc:
         _say_error(exc)
+        return 1
+    except Exception as exc:     # a bug: still one line; saving, the last step, was not reached
+        _say_error(f"internal error: {type(exc).__name__}: {exc}; nothing was saved")
         return 1
     print(f"rs_elastic: {message}", flush=True)
     return 0

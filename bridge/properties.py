@@ -8,6 +8,8 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 # schema imports nothing of the bridge.
 _REACTIONS = {}   # reaction name -> function(settings, context)
 
+LAST_FRAME = 1048574   # Blender's last frame; frames may be negative, down to -LAST_FRAME
+
 
 def set_reaction(name, function):
     """Call ``function(settings, context)`` when a setting with the reaction ``name`` changes."""
@@ -193,8 +195,8 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     active_handle: IntProperty(default=0)
     use_scene_range: BoolProperty(name="Scene Range", default=True,
                                   description="Solve over the scene's frame range")
-    frame_start: IntProperty(name="Start", default=1, min=0)
-    frame_end: IntProperty(name="End", default=100, min=0)
+    frame_start: IntProperty(name="Start", default=1, min=-LAST_FRAME, max=LAST_FRAME)
+    frame_end: IntProperty(name="End", default=100, min=-LAST_FRAME, max=LAST_FRAME)
     optimize_material: BoolProperty(
         name="Optimize Material", default=False,
         description="Also optimise frequencies, damping and mode shapes so the motion stays "
