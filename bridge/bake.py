@@ -245,8 +245,8 @@ def _keep_animation(obj, transaction):
 
 
 def _keep_fcurves(keys, paths, transaction):
-    """Undone, the F-curves of `paths` are back with their keyframes (before keys are renamed
-    back, they are restored under the names they have now)."""
+    """Undone, the F-curves of `paths` are back with their keyframes, under these paths: note
+    them before their keys are renamed, so they are restored once the names are back."""
     curves = animation.fcurves(keys, create=False)
     saved = []
     for curve in curves or []:

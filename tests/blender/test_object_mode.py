@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import add_tip_handle, evaluated_vertices, make_bar, preview_pose, \
-    state_fingerprint, vertices
+import creature
+from blender_helpers import add_tip_handle, evaluated_vertices, make_active, make_bar, \
+    preview_pose, state_fingerprint, vertices
 
 FRAMES = (1, 6)
 
@@ -151,3 +152,17 @@ def test_live_writes_nothing_in_edit_mode_and_shows_its_pose_once_back(ext):
     np.testing.assert_allclose(evaluated_vertices(obj), pose, atol=1e-5)
     assert not written_in_edit_mode
     live.stop(obj)
+
+
+def test_follow_selected_bones_is_refused_in_edit_mode_and_works_in_weight_paint(ext):
+    obj, rig = creature.build(bpy, np)
+    make_active(obj)
+    ext.bridge.armature.select_bones(rig, ["Body"])
+    bpy.ops.object.mode_set(mode='EDIT')
+    assert refused(bpy.ops.rs_elastic.follow_bones) == \
+        f"'{obj.name}' is in Edit Mode: switch to Object Mode (Tab) to set Follow Rig"
+    bpy.ops.object.mode_set(mode='WEIGHT_PAINT')          # where weights are painted
+    assert bpy.ops.rs_elastic.follow_bones() == {'FINISHED'}
+    bpy.ops.object.mode_set(mode='OBJECT')
+    np.testing.assert_array_equal(ext.bridge.scene.group_weights(obj, "Follow Rig"),
+                                  ext.bridge.scene.group_weights(obj, "Body"))
