@@ -24,17 +24,25 @@ interpolation adds its keys beside them.
 Tags follow names, so a key the user deletes by hand leaves its name tagged until the extension
 next writes keys (`_tag` forgets names that no longer exist); a key the user creates under that
 very name in between would count as the extension's.
+
+Writing (bridge/writes.py): every write here runs in a transaction. New keys are added first (the
+extension's old keys of the same names renamed out of their way, their F-curves following the
+names), and the old keys are removed only once everything new is written, so a failure on the way
+leaves the keys, their data, tags and F-curves as they were. Nothing is written outside Object
+Mode: Edit Mode keeps its own copy of the keys and writes it back when it is left.
 """
 import re
 
+import bpy
 import numpy as np
 
-from . import animation, mesh_cache
+from . import animation, mesh_cache, writes
 from .scene import InputError, require_single_user
 
 BAKE_PREFIX = "RS Bake "
 TAKE_PREFIX = "RS Take "     # a kept bake: the input motion of a space-time edit
 PREVIEW_KEY = "RS Elastic Preview"
+ASIDE_PREFIX = "RS Replaced "  # an old key renamed out of the way of its replacement
 TAGS = "rs_elastic"          # ID property on the Key datablock: {key name: role}
 
 BLOW_UP_FACTOR = 100.0       # a pose larger than this × the body's rest size has blown up
@@ -101,31 +109,20 @@ def owned_keys(obj, what):
     return [b for b in keys.key_blocks if role(keys, b) == what]
 
 
-def add_owned_keys(obj, names, what):
-    """New keys tagged as the extension's `what`, on a Basis (the user's first key if there is
-    one, else one the extension adds and tags). Blender may suffix a name that is taken."""
-    roles = {}
-    if obj.data.shape_keys is None:
-        roles[obj.shape_key_add(name="Basis", from_mix=False).name] = "basis"
-    blocks = [obj.shape_key_add(name=name, from_mix=False) for name in names]
-    roles.update((block.name, what) for block in blocks)
-    _tag(obj.data.shape_keys, roles)
-    return blocks
-
-
-def remove_owned_keys(obj, blocks):
-    """Remove these keys (the extension's own) and their F-curves; drop the Basis if the
+def _remove_named(obj, names):
+    """Remove the extension's keys `names` and their F-curves now; drop the Basis if the
     extension made it and nothing else is left on it."""
     keys = obj.data.shape_keys
-    if keys is None:
+    if keys is None or not names:
         return 0
-    animation.remove_fcurves(keys, {_value_path(b.name) for b in blocks})
-    for block in list(blocks):
-        name = block.name
-        obj.shape_key_remove(block)
-        _untag(keys, name)
+    animation.remove_fcurves(keys, {_value_path(name) for name in names})
+    for name in names:
+        block = keys.key_blocks.get(name)
+        if block is not None:
+            obj.shape_key_remove(block)
+            _untag(keys, name)
     _drop_own_basis(obj)
-    return len(blocks)
+    return len(names)
 
 
 def _drop_own_basis(obj):
@@ -136,21 +133,156 @@ def _drop_own_basis(obj):
         obj.shape_key_clear()
 
 
-# --- writing --------------------------------------------------------------------------------------
+# --- writing keys in a transaction ---------------------------------------------------------------
+
+def require_writable(obj, verb="bake"):
+    """Refuse (InputError) writing the object's keys or modifiers: a mesh shared by linked
+    duplicates, or an object outside Object Mode."""
+    require_single_user(obj)
+    writes.require_object_mode(obj, verb)
+
+
+def _keep_tags(obj, transaction):
+    """Undone, the tags are as they are now."""
+    keys = obj.data.shape_keys
+    saved = None if keys is None or keys.get(TAGS) is None else keys[TAGS].to_dict()
+
+    def undo():
+        keys = obj.data.shape_keys
+        if keys is None:
+            return
+        if saved is None:
+            if keys.get(TAGS) is not None:
+                del keys[TAGS]
+        else:
+            keys[TAGS] = saved
+    transaction.undo(undo)
+
+
+def _take_back_keys(obj, names, had_keys):
+    keys = obj.data.shape_keys
+    if keys is None:
+        return
+    animation.remove_fcurves(keys, {_value_path(name) for name in names})
+    if not had_keys:
+        obj.shape_key_clear()
+        return
+    for name in reversed(names):
+        block = keys.key_blocks.get(name)
+        if block is not None:
+            obj.shape_key_remove(block)
+
+
+def add_keys(obj, names, what, transaction):
+    """New keys tagged as the extension's `what`, on a Basis (the user's first key if there is
+    one, else one the extension adds and tags). Blender may suffix a name that is taken.
+    Undone, they go again, with their F-curves."""
+    made = []
+    had_keys = obj.data.shape_keys is not None
+    _keep_tags(obj, transaction)
+    transaction.undo(lambda: _take_back_keys(obj, made, had_keys))
+    roles = {}
+    if not had_keys:
+        made.append(obj.shape_key_add(name="Basis", from_mix=False).name)
+        roles[made[-1]] = "basis"
+    for name in names:
+        made.append(obj.shape_key_add(name=name, from_mix=False).name)
+        roles[made[-1]] = what
+    keys = obj.data.shape_keys
+    _tag(keys, roles)
+    return [keys.key_blocks[name] for name in made[len(made) - len(names):]]
+
+
+def _set_aside(obj, blocks, transaction):
+    """Rename the extension's old keys out of the way of new ones with the same names (their
+    F-curves follow the names; their roles stay tagged). Undone, they get their names back.
+    Returns their new names, for `remove_keys_later`."""
+    keys = obj.data.shape_keys
+    if not blocks:
+        return []
+    _keep_tags(obj, transaction)
+    renamed = []                                   # (name now, name before)
+
+    def undo():
+        for now, before in reversed(renamed):
+            keys.key_blocks[now].name = before
+    transaction.undo(undo)
+    roles = {}
+    for block in blocks:
+        before, what = block.name, role(keys, block)
+        block.name = ASIDE_PREFIX + before
+        renamed.append((block.name, before))
+        roles[block.name] = what
+    _tag(keys, roles)
+    return [now for now, _ in renamed]
+
+
+def remove_keys_later(obj, names, transaction):
+    """Remove the extension's keys `names` (and their F-curves) once everything new is written."""
+    if names:
+        transaction.remove(lambda: _remove_named(obj, list(names)))
+
+
+def _keep_animation(obj, transaction):
+    """Undone, the Key's animation data is as now: an action made for new F-curves goes again
+    (the F-curves themselves go with their keys)."""
+    keys = obj.data.shape_keys
+    had_data = keys.animation_data is not None
+    action = keys.animation_data.action if had_data else None
+    actions = set(bpy.data.actions)
+
+    def undo():
+        keys = obj.data.shape_keys
+        if keys is not None and action is None and keys.animation_data is not None:
+            if had_data:
+                keys.animation_data.action = None
+            else:
+                keys.animation_data_clear()
+        for made in set(bpy.data.actions) - actions:
+            if made.users == 0:
+                bpy.data.actions.remove(made)
+    transaction.undo(undo)
+
+
+def _keep_fcurves(keys, paths, transaction):
+    """Undone, the F-curves of `paths` are back with their keyframes, under these paths: note
+    them before their keys are renamed, so they are restored once the names are back."""
+    curves = animation.fcurves(keys, create=False)
+    saved = []
+    for curve in curves or []:
+        if curve.data_path in paths:
+            co = np.empty(len(curve.keyframe_points) * 2)
+            curve.keyframe_points.foreach_get("co", co)
+            saved.append((curve.data_path, curve.array_index, co,
+                           [p.interpolation for p in curve.keyframe_points]))
+
+    def undo():
+        for path, index, co, interpolations in saved:
+            curve = animation.insert_keys(keys, path, co.reshape(-1, 2), index=index)
+            for point, interpolation in zip(curve.keyframe_points, interpolations):
+                point.interpolation = interpolation
+    transaction.undo(undo)
+
 
 def _set_positions(key_block, positions):
     key_block.data.foreach_set("co", np.asarray(positions, dtype=np.float32).ravel())
 
 
 def replace_key_set(obj, prefix, names, positions):
-    """Remove the extension's in-between keys whose name starts with `prefix`, then add one key
-    per (name, positions)."""
-    remove_owned_keys(obj, [b for b in owned_keys(obj, "inbetween") if b.name.startswith(prefix)])
-    for key, pose in zip(add_owned_keys(obj, names, "inbetween"), positions):
-        _set_positions(key, pose)
-        key.value = 0.0
-    obj.data.update()
+    """Replace the extension's in-between keys whose name starts with `prefix` by one key per
+    (name, positions)."""
+    require_writable(obj, "write shape keys")
+    with writes.transaction(f"Writing the in-between keys of '{obj.name}'") as transaction:
+        old = [b for b in owned_keys(obj, "inbetween") if b.name.startswith(prefix)]
+        aside = _set_aside(obj, old, transaction)
+        for key, pose in zip(add_keys(obj, names, "inbetween", transaction), positions):
+            _set_positions(key, pose)
+            key.value = 0.0
+        remove_keys_later(obj, aside, transaction)
+        obj.data.update()
 
+
+# --- bakes ----------------------------------------------------------------------------------------
 
 def check_poses(object_name, rest, poses):
     """Raise InputError if poses (F, n, 3) are not finite or a pose is far larger than the body
@@ -169,46 +301,67 @@ def check_poses(object_name, rest, poses):
 
 
 def require_target(obj):
-    """Refuse (InputError) a bake that could not be written, before any work: a Mesh Cache
-    bake of an unsaved file has nowhere to go."""
-    require_single_user(obj)
+    """Refuse (InputError) a bake that could not be written, before any work: linked
+    duplicates, another mode than Object Mode, and for a Mesh Cache bake an unsaved file or a
+    bakes folder that cannot be written."""
+    require_writable(obj)
     if obj.rs_elastic.bake_to == 'CACHE':
-        mesh_cache.bake_path(obj)
+        mesh_cache.require_bake_folder(obj)
 
 
-def write_bake(obj, frames, positions):
-    """Replace the object's bake with one key per frame, or its Mesh Cache (Bake To).
-    positions: (F, n, 3) base-vertex poses.
+def _active_user_keys(obj):
+    keys = obj.data.shape_keys
+    return [] if keys is None else [
+        k.name for k in keys.key_blocks
+        if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
 
-    Returns the names of the user's keys whose value is not 0: they add on top of a key bake
-    (a Mesh Cache bake overwrites them while it plays).
-    """
-    require_single_user(obj)
-    if obj.rs_elastic.bake_to == 'CACHE':
-        remove_owned_keys(obj, owned_keys(obj, "bake"))
-        mesh_cache.write(obj, frames, positions)
-        keys = obj.data.shape_keys
-        return [] if keys is None else [
-            k.name for k in keys.key_blocks
-            if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
-    clear_bake(obj)
-    blocks = add_owned_keys(obj, [bake_key_name(frame) for frame in frames], "bake")
+
+def _write_key_bake(obj, frames, positions, transaction):
+    aside = _set_aside(obj, owned_keys(obj, "bake"), transaction)
+    blocks = add_keys(obj, [bake_key_name(frame) for frame in frames], "bake", transaction)
     for block, pose in zip(blocks, positions):
         _set_positions(block, pose)
         block.value = 0.0
     keys = obj.data.shape_keys
+    _keep_animation(obj, transaction)
     for frame, block in zip(frames, blocks):
         animation.insert_keys(keys, _value_path(block.name),
                               [(frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)], 'CONSTANT')
-    obj.data.update()
-    return [k.name for k in keys.key_blocks
-            if k != keys.reference_key and role(keys, k) is None and k.value != 0.0]
+    remove_keys_later(obj, aside, transaction)
+
+
+def write_bake(obj, frames, positions):
+    """Replace the object's bake with one key per frame, or its Mesh Cache (Bake To).
+    positions: (F, n, 3) base-vertex poses. The old bake goes only once the new one is written;
+    a failure leaves everything as it was (InputError).
+
+    Returns the names of the user's keys whose value is not 0: they add on top of a key bake
+    (a Mesh Cache bake overwrites them while it plays).
+    """
+    require_writable(obj)
+    with writes.transaction(f"Baking '{obj.name}'") as transaction:
+        if obj.rs_elastic.bake_to == 'CACHE':
+            mesh_cache.write(obj, frames, positions)
+            remove_keys_later(obj, [b.name for b in owned_keys(obj, "bake")], transaction)
+        else:
+            _write_key_bake(obj, frames, positions, transaction)
+            mesh_cache.clear(obj)
+        obj.data.update()
+    return _active_user_keys(obj)
 
 
 def clear_bake(obj):
-    """Remove the bake: its keys and F-curves, or its Mesh Cache modifier and file. Returns
-    how many frames were removed."""
-    return remove_owned_keys(obj, owned_keys(obj, "bake")) + mesh_cache.clear(obj)
+    """Remove the bake: its keys and F-curves, or its Mesh Cache modifier and file. Returns how
+    many frames were removed, or None if the object has no bake."""
+    require_writable(obj, "clear its bake")
+    with writes.transaction(f"Clearing the bake of '{obj.name}'") as transaction:
+        names = [b.name for b in owned_keys(obj, "bake")]
+        remove_keys_later(obj, names, transaction)
+        cache = mesh_cache.clear(obj)
+    obj.data.update()
+    if not names and cache is None:
+        return None
+    return len(names) + (cache or 0)
 
 
 def _frame_of(block, prefix):
@@ -235,18 +388,31 @@ def keep_bake_as_take(obj):
     The take's keys stay at 0 and are not animated, so they show nothing by themselves; a
     previous take is replaced.
     """
-    require_single_user(obj)
+    require_writable(obj, "keep its bake")
     blocks = _frames_and_blocks(obj, "bake", BAKE_PREFIX)
     if not blocks:
         return _cache_bake_as_take(obj)
-    remove_owned_keys(obj, owned_keys(obj, "take"))
-    keys = obj.data.shape_keys
-    animation.remove_fcurves(keys, {_value_path(block.name) for _, block in blocks})
-    for frame, block in blocks:
-        block.value = 0.0
-        block.name = f"{TAKE_PREFIX}{frame:04d}"
-    _tag(keys, {block.name: "take" for _, block in blocks})     # the bake names drop out
-    obj.data.update()
+    with writes.transaction(f"Keeping the bake of '{obj.name}' as the take") as transaction:
+        aside = _set_aside(obj, owned_keys(obj, "take"), transaction)
+        keys = obj.data.shape_keys
+        paths = {_value_path(block.name) for _, block in blocks}
+        _keep_fcurves(keys, paths, transaction)
+        animation.remove_fcurves(keys, paths)
+        _keep_tags(obj, transaction)
+        renamed = []                               # (key, name before)
+
+        def undo():
+            for block, before in reversed(renamed):
+                block.name = before
+        transaction.undo(undo)
+        for frame, block in blocks:
+            writes.keep_values(transaction, block, ["value"])
+            block.value = 0.0
+            renamed.append((block, block.name))
+            block.name = f"{TAKE_PREFIX}{frame:04d}"
+        _tag(keys, {block.name: "take" for _, block in blocks})     # the bake names drop out
+        remove_keys_later(obj, aside, transaction)
+        obj.data.update()
     return [frame for frame, _ in blocks]
 
 
@@ -268,11 +434,13 @@ def _cache_bake_as_take(obj):
     frames, positions = mesh_cache.poses(obj)
     if not frames:
         return []
-    remove_owned_keys(obj, owned_keys(obj, "take"))
-    names = [f"{TAKE_PREFIX}{frame:04d}" for frame in frames]
-    for block, pose in zip(add_owned_keys(obj, names, "take"), positions):
-        _set_positions(block, pose)
-        block.value = 0.0
-    mesh_cache.clear(obj)
-    obj.data.update()
+    with writes.transaction(f"Keeping the bake of '{obj.name}' as the take") as transaction:
+        aside = _set_aside(obj, owned_keys(obj, "take"), transaction)
+        names = [f"{TAKE_PREFIX}{frame:04d}" for frame in frames]
+        for block, pose in zip(add_keys(obj, names, "take", transaction), positions):
+            _set_positions(block, pose)
+            block.value = 0.0
+        remove_keys_later(obj, aside, transaction)
+        mesh_cache.clear(obj)
+        obj.data.update()
     return frames

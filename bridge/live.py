@@ -3,7 +3,8 @@
 With a body's Live setting on, moving one of its handles' Empties or changing their keyframes
 re-solves the edit, warm-started from the last live solution, and shows the pose at the current
 frame as the preview shape key (bridge/preview.py's key, owned by the extension). Live never
-writes the bake: only Solve and Bake does, so no edit made live can replace work.
+writes the bake: only Solve and Bake does, so no edit made live can replace work. Outside Object
+Mode it writes nothing (as the mode preview); the pose shows once the body is back in Object Mode.
 
 Flow (main thread unless said): ``on_depsgraph_update`` notes which bodies' handles changed and
 when; a ``bpy.app.timers`` callback (``_tick``) waits ``DEBOUNCE`` seconds of quiet, gathers the
@@ -84,6 +85,8 @@ def show(obj, blender_scene):
         preview.hide(obj)
         return False
     scene.require_single_user(obj)
+    if not preview.in_object_mode(obj):     # shown once back in Object Mode (handlers.py)
+        return False
     pose = solution.pose(frame - solution.frames[0])
     if not np.all(np.isfinite(pose)):       # a diverged re-solve must not reach the mesh
         ERRORS[obj.name] = "Live: the re-solve diverged; move the handle back or run Solve and Bake"
@@ -97,12 +100,7 @@ def show(obj, blender_scene):
         co = np.empty(len(block.data) * 3, dtype=np.float32)
         block.data.foreach_get("co", co)
         pose = pose + (scene.base_vertices(obj) - co.reshape(-1, 3))
-    key = preview._preview_key(obj)
-    if key is None:
-        key, = bake.add_owned_keys(obj, [preview.PREVIEW_KEY], "preview")
-    key.data.foreach_set("co", pose.astype(np.float32).ravel())
-    key.value = 1.0
-    obj.data.update()
+    preview.write_key(obj, pose)
     return True
 
 
@@ -216,6 +214,8 @@ def _start(name, synchronous):
     objects, blender_scene = _objects()
     obj = objects.get(name)
     if obj is None or not obj.rs_elastic.live:
+        return
+    if not preview.in_object_mode(obj):      # solved once back in Object Mode (handlers.py)
         return
     try:
         job = spacetime_inputs.gather(obj, blender_scene)

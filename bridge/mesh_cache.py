@@ -2,45 +2,84 @@
 
 A shape-key bake costs frames x vertices x 12 bytes inside the .blend (1,000 frames of a
 100k-vertex mesh: 1.2 GB) and makes the shape-key list unusable. For long shots the bake is
-written instead to ``blendcache_<blend>/bakes/<object>.pc2`` next to the saved .blend (a file
-the cache pruning never touches) and played by a Mesh Cache modifier named ``MODIFIER`` at the
-top of the stack in Overwrite mode: it replaces the base positions before every other modifier,
-exactly where shape keys act, so an Armature modifier still carries the bake.
+written instead to ``blendcache_<blend>/bakes/<object>.<identity>.pc2`` next to the saved .blend
+(a folder the cache pruning never touches) and played by a Mesh Cache modifier (named
+``MODIFIER`` when it is made) at the top of the stack in Overwrite mode: it replaces the base
+positions before every other modifier, exactly where shape keys act, so an Armature modifier
+still carries the bake.
 
 PC2 layout (little-endian): char[12] "POINTCACHE2\\0", int32 version 1, int32 point count,
 float32 start frame, float32 sample rate, int32 sample count, then float32 (samples, points, 3).
 The file's start is 0 and its rate 1; the modifier's Frame Start puts sample 0 on the bake's
 first scene frame.
 
-Ownership: the object's ``rs_elastic.cache_bake_file`` records the file the extension wrote;
-the modifier is recognised by that record and its name. Clear Bake removes both; a user's own
-Mesh Cache modifiers are never touched.
+Ownership. Every bake gets a new identity (a uuid4: identity, not a result), which is in its
+file's name; the object records that file (``rs_elastic.cache_bake_file``), and the extension's
+modifier is the Mesh Cache modifier that plays a file of that name, whatever the modifier is
+called (modifiers cannot hold ID properties). So a user's own Mesh Cache modifier is never
+touched, two objects never share a file by their names, and a duplicate (Shift+D), which copies
+the record and the modifier, gets its own file at its first bake. Where the file is comes from
+the modifier (Blender remaps its relative path when the .blend is saved elsewhere); the record's
+folder is only informative. Bakes made before identities (``<object>.pc2``, a modifier named
+``MODIFIER``) are recognised the same way.
+
+A bake's file is never written over: a new bake writes a new file, and the old one is deleted
+only once the new one plays, only from this .blend's own bakes folder, and only if no Mesh Cache
+modifier of any object still plays it. Saving the .blend under another folder or name gives the
+new file its own copy (a hard link where the disk allows, ``before_save``), so clearing a bake in
+one .blend never breaks another's.
 """
 import contextlib
 import os
 import re
+import shutil
+import uuid
 
 import bpy
 import numpy as np
 
+from . import writes
 from .scene import InputError
 
 MODIFIER = "RS Elastic Bake"
 HEADER = np.dtype([("magic", "S12"), ("version", "<i4"), ("points", "<i4"), ("start", "<f4"),
                    ("rate", "<f4"), ("samples", "<i4")])
 SUGGEST_BYTES = 64 * 2 ** 20    # shape keys above this size: the panel suggests a Mesh Cache
+# The modifier's settings a bake sets (and a failed bake puts back).
+PLAYER_SETTINGS = ("cache_format", "filepath", "deform_mode", "interpolation", "time_mode",
+                   "play_mode", "frame_start", "frame_scale")
 
+
+# --- the .pc2 format ----------------------------------------------------------------------------
 
 def write_pc2(path, positions):
-    """Write poses (F, n, 3) [object space] as a .pc2 file (start 0, rate 1)."""
+    """Write poses (F, n, 3) [object space] as a .pc2 file (start 0, rate 1). A failed write
+    leaves nothing behind (it goes through a temporary file)."""
     positions = np.ascontiguousarray(positions, dtype="<f4")
     header = np.array([(b"POINTCACHE2\0", 1, positions.shape[1], 0.0, 1.0, positions.shape[0])],
                       dtype=HEADER)
-    temporary = path + ".part"              # a failed write never leaves half a bake behind
-    with open(temporary, "wb") as f:
-        f.write(header.tobytes())
-        f.write(positions.tobytes())
-    os.replace(temporary, path)
+    temporary = path + ".part"
+    try:
+        with open(temporary, "wb") as f:
+            f.write(header.tobytes())
+            f.write(positions.tobytes())
+        os.replace(temporary, path)
+    except BaseException:
+        writes.remove_file_quietly(temporary)
+        raise
+
+
+def read_pc2_header(path):
+    """(samples, points) of a .pc2 file; ValueError if it is not one or is cut short."""
+    with open(path, "rb") as f:
+        header = np.frombuffer(f.read(HEADER.itemsize), dtype=HEADER)
+        size = os.fstat(f.fileno()).st_size
+    if len(header) != 1 or header["magic"][0] != b"POINTCACHE2":
+        raise ValueError(f"{path} is not a PC2 point cache")
+    samples, points = int(header["samples"][0]), int(header["points"][0])
+    if size < HEADER.itemsize + samples * points * 12:
+        raise ValueError(f"{path} is shorter than its header says")
+    return samples, points
 
 
 def read_pc2(path):
@@ -61,26 +100,106 @@ def shape_key_bytes(frames, vertex_count):
     return int(frames) * int(vertex_count) * 12
 
 
-def bake_path(obj):
-    """Absolute path of the object's .pc2 bake next to the saved .blend. Raises InputError for
-    an unsaved file (the bake must travel with it)."""
-    if not bpy.data.filepath:
+# --- where bakes go -------------------------------------------------------------------------------
+
+def bakes_folder(blend_path=None):
+    """The bakes folder of the .blend at `blend_path` (default: the open one). InputError for an
+    unsaved file (the bake must travel with it)."""
+    blend_path = blend_path or bpy.data.filepath
+    if not blend_path:
         raise InputError("Save the .blend first: a Mesh Cache bake is written next to it")
-    folder, name = os.path.split(bpy.data.filepath)
-    folder = os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}", "bakes")
-    return os.path.join(folder, re.sub(r"[^A-Za-z0-9_-]", "_", obj.name) + ".pc2")
+    folder, name = os.path.split(blend_path)
+    return os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}", "bakes")
+
+
+def new_bake_path(obj):
+    """A path for a new bake of `obj`: its name for people to read, a new identity for ownership."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", obj.name)
+    return os.path.join(bakes_folder(), f"{name}.{uuid.uuid4().hex[:16]}.pc2")
+
+
+def _folder_problem(folder):
+    """Why `folder` cannot be made or written to, or None."""
+    path = folder
+    while not os.path.lexists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)
+    if not os.path.isdir(path):
+        return f"{path} is a file, not a folder"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return f"the folder {path} is not writable"
+    return None
+
+
+def require_bake_folder(obj):
+    """Refuse (InputError), before any work, a Mesh Cache bake that could not be written."""
+    problem = _folder_problem(bakes_folder())
+    if problem is not None:
+        raise InputError(f"'{obj.name}' cannot be baked to a Mesh Cache: {problem}")
+
+
+def _make_folders(folder, transaction):
+    """os.makedirs(folder); undone, the folders it made go again."""
+    made = []
+    path = folder
+    while not os.path.lexists(path) and os.path.dirname(path) != path:
+        made.append(path)
+        path = os.path.dirname(path)
+
+    def undo():
+        for path in made:             # innermost first
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
+    transaction.undo(undo)
+    os.makedirs(folder, exist_ok=True)
+
+
+# --- ownership ------------------------------------------------------------------------------------
+
+def _file_name(path):
+    return re.split(r"[\\/]", path)[-1]
 
 
 def owned_modifier(obj):
-    """The object's bake modifier, or None."""
-    modifier = obj.modifiers.get(MODIFIER)
-    if modifier is None or modifier.type != 'MESH_CACHE' or not obj.rs_elastic.cache_bake_file:
+    """The object's bake modifier (the Mesh Cache modifier playing its recorded file), or None."""
+    record = obj.rs_elastic.cache_bake_file
+    if not record:
         return None
-    return modifier
+    name = _file_name(record)
+    for modifier in obj.modifiers:
+        if modifier.type == 'MESH_CACHE' and _file_name(modifier.filepath) == name:
+            return modifier
+    return None
 
 
 def is_bake_modifier(obj, modifier):
     return modifier == owned_modifier(obj)
+
+
+def _absolute(obj, path):
+    return os.path.normpath(bpy.path.abspath(path, library=obj.library))
+
+
+def bake_file(obj, modifier=None):
+    """Absolute path of the .pc2 the object's bake modifier plays, or None without one."""
+    modifier = modifier or owned_modifier(obj)
+    return None if modifier is None else _absolute(obj, modifier.filepath)
+
+
+def _played_anywhere(path):
+    """Whether a Mesh Cache modifier of any object plays `path`."""
+    path = os.path.realpath(path)
+    return any(m.type == 'MESH_CACHE' and os.path.realpath(_absolute(o, m.filepath)) == path
+               for o in bpy.data.objects for m in o.modifiers)
+
+
+def _delete_if_unused(path):
+    """Delete a bake's file that nothing plays any more, if it is in this .blend's own bakes
+    folder (a file elsewhere belongs to another .blend)."""
+    if not bpy.data.filepath or _played_anywhere(path):
+        return
+    if os.path.realpath(os.path.dirname(path)) != os.path.realpath(bakes_folder()):
+        return
+    writes.remove_file_quietly(path)
 
 
 @contextlib.contextmanager
@@ -103,38 +222,88 @@ def muted(obj, depsgraph=None):
             depsgraph.update()
 
 
-def write(obj, frames, positions):
-    """Write poses (F, n, 3) of consecutive ``frames`` to the object's .pc2 and set up the
-    modifier that plays it (replacing a previous cache bake). Returns the file's path."""
-    path = bake_path(obj)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    write_pc2(path, positions)
-    modifier = owned_modifier(obj) or obj.modifiers.new(MODIFIER, 'MESH_CACHE')
+# --- writing and clearing -------------------------------------------------------------------------
+
+def _player(obj, transaction):
+    """The bake modifier to play a new file: the object's own (its settings noted, so a failure
+    puts them back), or a new one at the top of the stack (removed on failure)."""
+    modifier = owned_modifier(obj)
+    if modifier is None:
+        modifier = obj.modifiers.new(MODIFIER, 'MESH_CACHE')
+        name = modifier.name
+        transaction.undo(lambda: _remove_modifier(obj, name))
+    else:
+        writes.keep_values(transaction, modifier, PLAYER_SETTINGS)
+        name, index = modifier.name, list(obj.modifiers).index(modifier)
+        transaction.undo(lambda: obj.modifiers.move(
+            list(obj.modifiers).index(obj.modifiers[name]), index))
     obj.modifiers.move(list(obj.modifiers).index(modifier), 0)   # where shape keys act
-    modifier.cache_format = 'PC2'
-    modifier.filepath = bpy.path.relpath(path)
-    modifier.deform_mode = 'OVERWRITE'
-    modifier.interpolation = 'LINEAR'
-    modifier.time_mode = 'FRAME'
-    modifier.play_mode = 'SCENE'
-    modifier.frame_start = float(frames[0])
-    modifier.frame_scale = 1.0
-    obj.rs_elastic.cache_bake_file = modifier.filepath
+    return modifier
+
+
+def write(obj, frames, positions):
+    """Write poses (F, n, 3) of consecutive ``frames`` to a new .pc2 and make the object's bake
+    modifier play it; the previous cache bake's file goes once nothing plays it. Returns the
+    new file's path."""
+    with writes.transaction(f"Writing the Mesh Cache bake of '{obj.name}'") as transaction:
+        path = new_bake_path(obj)
+        _make_folders(os.path.dirname(path), transaction)
+        transaction.undo(lambda: writes.remove_file_quietly(path))
+        write_pc2(path, positions)
+        old = bake_file(obj)
+        modifier = _player(obj, transaction)
+        modifier.cache_format = 'PC2'
+        modifier.filepath = bpy.path.relpath(path)
+        modifier.deform_mode = 'OVERWRITE'
+        modifier.interpolation = 'LINEAR'
+        modifier.time_mode = 'FRAME'
+        modifier.play_mode = 'SCENE'
+        modifier.frame_start = float(frames[0])
+        modifier.frame_scale = 1.0
+        writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
+        obj.rs_elastic.cache_bake_file = modifier.filepath
+        if old is not None:
+            transaction.after(lambda: _delete_if_unused(old))
     return path
 
 
 def clear(obj):
-    """Remove the cache bake (modifier and file). Returns how many frames it held (0: none)."""
+    """Remove the cache bake: its modifier, then its file once nothing plays it. Returns how many
+    frames it held, or None if the object has no cache bake."""
     modifier = owned_modifier(obj)
     if modifier is None:
-        return 0
-    path = bpy.path.abspath(obj.rs_elastic.cache_bake_file)
+        return None
     frames = len(frames_of(obj))
-    obj.modifiers.remove(modifier)
-    obj.rs_elastic.cache_bake_file = ""
-    if os.path.isfile(path):
-        os.remove(path)
+    with writes.transaction(f"Clearing the Mesh Cache bake of '{obj.name}'") as transaction:
+        path, name = bake_file(obj, modifier), modifier.name
+        writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
+        obj.rs_elastic.cache_bake_file = ""
+        saved = _modifier_settings(obj, modifier)
+        transaction.remove(lambda: _remove_modifier(obj, name),
+                           undo=lambda: _restore_modifier(obj, saved))
+        transaction.after(lambda: _delete_if_unused(path))
     return frames
+
+
+def _remove_modifier(obj, name):
+    obj.modifiers.remove(obj.modifiers[name])
+
+
+def _modifier_settings(obj, modifier):
+    """(name, index in the stack, {setting: value}) of a Mesh Cache modifier."""
+    values = {p.identifier: getattr(modifier, p.identifier) for p in modifier.bl_rna.properties
+              if not p.is_readonly and p.type not in ('POINTER', 'COLLECTION')
+              and p.identifier not in ("name", "is_active", "persistent_uid")}
+    return modifier.name, list(obj.modifiers).index(modifier), values
+
+
+def _restore_modifier(obj, saved):
+    """Make a removed Mesh Cache modifier again, where it was, from `_modifier_settings`."""
+    name, index, values = saved
+    modifier = obj.modifiers.new(name, 'MESH_CACHE')
+    for key, value in values.items():
+        setattr(modifier, key, value)
+    obj.modifiers.move(list(obj.modifiers).index(modifier), index)
 
 
 def frames_of(obj):
@@ -143,11 +312,11 @@ def frames_of(obj):
     if modifier is None:
         return []
     try:
-        samples, _ = read_pc2(bpy.path.abspath(obj.rs_elastic.cache_bake_file))
+        samples, _ = read_pc2_header(bake_file(obj, modifier))
     except (OSError, ValueError):
         return []
     start = int(round(modifier.frame_start))
-    return list(range(start, start + len(samples)))
+    return list(range(start, start + samples))
 
 
 def poses(obj):
@@ -155,5 +324,89 @@ def poses(obj):
     frames = frames_of(obj)
     if not frames:
         return [], None
-    samples, _ = read_pc2(bpy.path.abspath(obj.rs_elastic.cache_bake_file))
+    samples, _ = read_pc2(bake_file(obj))
     return frames, samples.astype(np.float64)
+
+
+# --- saving under another name --------------------------------------------------------------------
+
+_MOVED = []     # during a save: (object, modifier, filepath before, record before, file made)
+
+
+def _same_path(a, b):
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _link_or_copy(source, target):
+    """Put `source`'s content at `target`: a hard link, else a copy. False if `target` was there
+    already (a bake's file name is never reused for other content)."""
+    if os.path.exists(target):
+        return False
+    os.makedirs(os.path.dirname(target), exist_ok=True)
+    try:
+        os.link(source, target)
+    except OSError:
+        part = target + ".part"
+        try:
+            shutil.copyfile(source, part)
+            os.replace(part, target)
+        except BaseException:
+            writes.remove_file_quietly(part)
+            raise
+    return True
+
+
+def before_save(filepath):
+    """save_pre: saved to another folder or name, the .blend gets its own copy of each cache bake
+    in its own bakes folder, and the modifier plays that copy (written relative to the open file,
+    Blender remaps it to the new one). A bake that cannot be copied keeps playing the old file."""
+    _MOVED.clear()
+    if not bpy.data.filepath or not os.path.isdir(os.path.dirname(filepath)):
+        return          # nothing baked yet, or a save that is bound to fail
+    target_folder = bakes_folder(filepath)
+    for obj in bpy.data.objects:
+        if obj.library is not None or obj.type != 'MESH':
+            continue
+        modifier = owned_modifier(obj)
+        source = bake_file(obj, modifier)
+        if source is None or not os.path.isfile(source) \
+                or _same_path(os.path.dirname(source), target_folder):
+            continue
+        target = os.path.join(target_folder, os.path.basename(source))
+        try:
+            made = _link_or_copy(source, target)
+        except OSError as exc:
+            print(f"RS Elastic: the Mesh Cache bake of '{obj.name}' could not be copied next to "
+                  f"{filepath} ({writes.reason(exc)}); it still plays {source}")
+            continue
+        _MOVED.append((obj.name, modifier.name, modifier.filepath, obj.rs_elastic.cache_bake_file,
+                       target if made else None))
+        modifier.filepath = bpy.path.relpath(target)
+        # A string setting is not remapped by Blender: written relative to the new file.
+        obj.rs_elastic.cache_bake_file = bpy.path.relpath(target, start=os.path.dirname(filepath))
+
+
+def _moved_players():
+    for name, modifier_name, before, record, made in _MOVED:
+        obj = bpy.data.objects.get(name)
+        modifier = None if obj is None else obj.modifiers.get(modifier_name)
+        if modifier is not None:
+            yield obj, modifier, before, record, made
+
+
+def after_save(filepath):
+    """save_post: a saved copy (the open file stays the old one) leaves the open file's bakes
+    playing its own files."""
+    if not _same_path(filepath, bpy.data.filepath):
+        for obj, modifier, before, record, _ in _moved_players():
+            modifier.filepath, obj.rs_elastic.cache_bake_file = before, record
+    _MOVED.clear()
+
+
+def after_failed_save(filepath):
+    """save_post_fail: everything as before the save, and the copies made for it gone."""
+    for obj, modifier, before, record, made in _moved_players():
+        modifier.filepath, obj.rs_elastic.cache_bake_file = before, record
+        if made is not None:
+            writes.remove_file_quietly(made)
+    _MOVED.clear()

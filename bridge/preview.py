@@ -10,13 +10,18 @@ The preview owns one shape key, named PREVIEW_KEY and tagged as the extension's,
 if the mesh had none (see bake.py on ownership). Turning the preview off removes exactly those, so
 the mesh is left as it was; the base vertices and the user's keys are never written. A mesh shared
 by linked duplicates shows no preview: its keys belong to every object using it.
+
+Outside Object Mode the key is not written (leaving Edit Mode would write the mode's own copy of
+the keys over it): the object waits in ``WAITING`` and its preview is brought in line once it is
+back in Object Mode (bridge/handlers.py).
 """
 import numpy as np
 
-from . import bake, mesh_cache, prepared, scene
+from . import bake, mesh_cache, prepared, scene, writes
 from .scene import InputError
 
 PREVIEW_KEY = bake.PREVIEW_KEY
+WAITING = set()      # names of objects whose preview changed outside Object Mode
 
 
 def refresh(obj):
@@ -49,6 +54,14 @@ def preview_positions(obj, body):
     return rest + body.surface(body.reconstruction.reconstruct(y))
 
 
+def in_object_mode(obj):
+    """Whether the preview key may be written now; if not, the object waits for Object Mode."""
+    if obj.mode == 'OBJECT':
+        return True
+    WAITING.add(obj.name)
+    return False
+
+
 def show(obj):
     body = prepared.for_object(obj)
     if body is None:
@@ -57,27 +70,44 @@ def show(obj):
         scene.require_single_user(obj)
     except InputError:
         return False  # linked duplicates: the panel's Prepare already refuses them
-    positions = preview_positions(obj, body)
-    key = _preview_key(obj)
-    if key is None:
-        key, = bake.add_owned_keys(obj, [PREVIEW_KEY], "preview")
-    key.data.foreach_set("co", positions.astype(np.float32).ravel())
-    key.value = 1.0
-    _show_cache_bake(obj, False)     # a Mesh Cache bake would overwrite the preview key
-    obj.data.update()
+    if not in_object_mode(obj):
+        return False
+    write_key(obj, preview_positions(obj, body))
     return True
 
 
-def hide(obj):
-    if obj.type == 'MESH':
-        bake.remove_owned_keys(obj, bake.owned_keys(obj, "preview"))
-        _show_cache_bake(obj, True)
+def write_key(obj, positions):
+    """Show base-vertex positions (n, 3) on the preview key (made if missing), over a cache
+    bake (which would overwrite the key while it plays). A failure changes nothing."""
+    with writes.transaction(f"Showing the preview of '{obj.name}'") as transaction:
+        key = _preview_key(obj)
+        if key is None:
+            key, = bake.add_keys(obj, [PREVIEW_KEY], "preview", transaction)
+        else:
+            before = np.empty(len(key.data) * 3, dtype=np.float32)
+            key.data.foreach_get("co", before)
+            transaction.undo(lambda: key.data.foreach_set("co", before))
+            writes.keep_values(transaction, key, ["value"])
+        key.data.foreach_set("co", np.asarray(positions, dtype=np.float32).ravel())
+        key.value = 1.0
+        _show_cache_bake(obj, False, transaction)
         obj.data.update()
 
 
-def _show_cache_bake(obj, visible):
+def hide(obj):
+    if obj.type != 'MESH' or not in_object_mode(obj):
+        return
+    with writes.transaction(f"Hiding the preview of '{obj.name}'") as transaction:
+        bake.remove_keys_later(obj, [b.name for b in bake.owned_keys(obj, "preview")],
+                               transaction)
+        _show_cache_bake(obj, True, transaction)
+        obj.data.update()
+
+
+def _show_cache_bake(obj, visible, transaction):
     modifier = mesh_cache.owned_modifier(obj)
     if modifier is not None and modifier.show_viewport != visible:
+        writes.keep_values(transaction, modifier, ["show_viewport"])
         modifier.show_viewport = visible
 
 

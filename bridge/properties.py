@@ -231,7 +231,9 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         description="Where a bake goes")
     cache_bake_file: StringProperty(
         name="Cache Bake File", default="",
-        description="The .pc2 file of the current Mesh Cache bake (written by the extension)")
+        description="The .pc2 file of the current Mesh Cache bake (written by the extension). "
+                    "Its name holds the bake's identity: the extension's modifier is the Mesh "
+                    "Cache modifier playing a file of that name")
     use_take: BoolProperty(name="Edit the Take", default=False,
                            description="Use the stored take (a kept bake) as the input motion")
     take_weight: FloatProperty(name="Take Weight", default=0.01, min=0.0, soft_max=1.0,

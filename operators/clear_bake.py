@@ -2,6 +2,7 @@
 import bpy
 
 from ..bridge import bake, scene
+from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
@@ -15,11 +16,16 @@ class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
         obj = scene.active_mesh_or_report(self, context)
         if obj is None:
             return {'CANCELLED'}
-        removed = bake.clear_bake(obj)
-        if removed == 0:
+        try:
+            removed = bake.clear_bake(obj)
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        if removed is None:
             self.report({'WARNING'}, f"'{obj.name}' has no bake")
             return {'CANCELLED'}
-        self.report({'INFO'}, f"Removed {removed} baked frames from '{obj.name}'")
+        self.report({'INFO'}, f"Removed {removed} baked frames from '{obj.name}'" if removed
+                    else f"Removed the bake of '{obj.name}' (its .pc2 file was missing)")
         return {'FINISHED'}
 
 

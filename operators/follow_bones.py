@@ -1,7 +1,8 @@
 """Make the Follow Rig group of a rigged body from the bones selected in its armature."""
 import bpy
 
-from ..bridge import armature, scene
+from ..bridge import armature, scene, writes
+from ..bridge.scene import InputError
 
 GROUP = "Follow Rig"
 
@@ -17,6 +18,11 @@ class RS_ELASTIC_OT_follow_bones(bpy.types.Operator):
     def execute(self, context):
         obj = scene.active_mesh_or_report(self, context)
         if obj is None:
+            return {'CANCELLED'}
+        try:        # weights are painted in Weight Paint mode; Edit Mode keeps its own copy
+            writes.require_object_mode(obj, "set Follow Rig", allowed=('OBJECT', 'WEIGHT_PAINT'))
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
         if not armature.is_rigged(obj):
             self.report({'ERROR'}, f"'{obj.name}' has no Armature modifier with an armature")

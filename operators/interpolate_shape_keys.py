@@ -55,6 +55,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
 
     def _run(self, context):
         obj = scene.require_mesh_object(context.active_object)
+        bake.require_writable(obj, "write shape keys")
         if self.output == 'ANIMATION':
             if self.frame_end <= self.frame_start:
                 raise InputError(f"The frame range {self.frame_start}–{self.frame_end} is empty")

@@ -2,6 +2,7 @@
 import bpy
 
 from ..bridge import bake, scene
+from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_keep_take(bpy.types.Operator):
@@ -14,7 +15,11 @@ class RS_ELASTIC_OT_keep_take(bpy.types.Operator):
         obj = scene.active_mesh_or_report(self, context)
         if obj is None:
             return {'CANCELLED'}
-        frames = bake.keep_bake_as_take(obj)
+        try:
+            frames = bake.keep_bake_as_take(obj)
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
         if not frames:
             self.report({'ERROR'}, f"'{obj.name}' has no bake to keep")
             return {'CANCELLED'}

@@ -8,7 +8,8 @@ on the main thread and run as a second job, within the same operator.
 import bpy
 import numpy as np
 
-from ..bridge import bake, jobs, simulation_inputs
+from ..bridge import bake, jobs, scene, simulation_inputs, stage_cache, writes
+from ..bridge.scene import InputError
 
 ENERGY, SIMULATE = "energy", "simulate"
 MAX_ENERGY_JOBS = 3     # the material may change during a training: retrain, but not forever
@@ -26,6 +27,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
 
     def make_work(self, context):
         obj = context.active_object
+        bake.require_target(scene.require_body(obj))     # before any training
         work = None
         if self._energy_jobs < MAX_ENERGY_JOBS:
             work = simulation_inputs.energy_work(obj)
@@ -76,8 +78,14 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
             self.report({'ERROR'}, f"The simulation of '{obj.name}' blew up; try more damping "
                                    "or a higher frame rate. Nothing was baked")
             return {'CANCELLED'}
-        active = bake.write_bake(obj, inputs.frames, poses)
-        simulation_inputs.record_energy(obj)
+        try:
+            with writes.transaction(f"Baking '{obj.name}'") as transaction:
+                writes.keep_id_properties(transaction, obj.rs_elastic, [stage_cache.ENERGY_RECORD])
+                active = bake.write_bake(obj, inputs.frames, poses)
+                simulation_inputs.record_energy(obj)
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")

@@ -1,7 +1,8 @@
 """Solve a space-time edit of the active body and bake it into shape keys."""
 import bpy
 
-from ..bridge import bake, jobs, spacetime_inputs
+from ..bridge import bake, jobs, spacetime_inputs, writes
+from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
@@ -23,23 +24,43 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
         settings = obj.rs_elastic
         for message in inputs.warnings:
             self.report({'WARNING'}, message)
-        active = bake.write_bake(obj, inputs.frames, poses)
+        try:
+            with writes.transaction(f"Baking '{obj.name}'") as transaction:
+                active = bake.write_bake(obj, inputs.frames, poses)
+                _record_solve(obj, inputs, result, transaction)
+        except InputError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
-        scale = inputs.world_scale          # positive, a mirrored object's too
-        for handle in settings.handles:
-            handle.residual = -1.0
-        for index, rows in inputs.track_slices:
-            settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
-        settings.solve_history.clear()
-        for _, _, objective in result.history:
-            settings.solve_history.add().value = float(objective)
         worst = max((h.residual for h in settings.handles), default=-1.0)
         self.report({'INFO'}, f"'{obj.name}': baked frames {inputs.frames[0]}–{inputs.frames[-1]}"
                               f" in {result.iterations} iterations"
                               + (f", largest handle miss {worst:.2g} m" if worst >= 0 else ""))
         return {'FINISHED'}
+
+
+def _record_solve(obj, inputs, result, transaction):
+    """Each handle's residual and the objective's history, for the panel (undone with the bake)."""
+    settings = obj.rs_elastic
+    for handle in settings.handles:
+        writes.keep_values(transaction, handle, ["residual"])
+    history = [item.value for item in settings.solve_history]
+
+    def undo():
+        settings.solve_history.clear()
+        for value in history:
+            settings.solve_history.add().value = value
+    transaction.undo(undo)
+    scale = inputs.world_scale          # positive, a mirrored object's too
+    for handle in settings.handles:
+        handle.residual = -1.0
+    for index, rows in inputs.track_slices:
+        settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
+    settings.solve_history.clear()
+    for _, _, objective in result.history:
+        settings.solve_history.add().value = float(objective)
 
 
 CLASSES = (RS_ELASTIC_OT_solve_spacetime,)

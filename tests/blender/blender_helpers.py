@@ -228,3 +228,73 @@ def add_tip_handle(obj, keys):
         empty.location = location
         empty.keyframe_insert("location", frame=frame)
     return empty, tip
+
+
+def disk_fingerprint(folder):
+    """[(path under `folder`, sha256)] of every file below it, and every folder (hash None)."""
+    folder = pathlib.Path(folder)
+    rows = []
+    for path in sorted(folder.rglob("*")):
+        digest = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+        rows.append((str(path.relative_to(folder)), digest))
+    return rows
+
+
+def _id_property_value(value):
+    if isinstance(value, (list, tuple)):
+        return [_id_property_value(v) for v in value]
+    if hasattr(value, "to_dict"):
+        return {k: _id_property_value(v) for k, v in sorted(value.items())}
+    if hasattr(value, "to_list"):
+        return hashlib.sha256(np.asarray(value.to_list()).tobytes()).hexdigest()
+    return value
+
+
+def _modifier_settings(modifier):
+    values = [(modifier.name, modifier.type)]
+    for prop in modifier.bl_rna.properties:
+        if prop.is_readonly or prop.type == 'COLLECTION' or prop.identifier == "rna_type":
+            continue
+        value = getattr(modifier, prop.identifier)
+        if prop.type == 'POINTER':
+            value = getattr(value, "name", None)
+        elif getattr(prop, "is_array", False):
+            value = tuple(value)
+        values.append((prop.identifier, value))
+    return values
+
+
+def state_fingerprint(folder=None):
+    """Everything, the extension's own data included, that a failed write must leave as it was:
+    `user_fingerprint`, then per mesh object every shape key (name, value, mute, relative key,
+    data), the Key's tags and every F-curve, every modifier with its settings, the results in
+    obj.rs_elastic and its ID properties (tet mesh, Prepare's records), the file's actions; and
+    with `folder`, every file and folder below it."""
+    rows = [user_fingerprint(), sorted(a.name for a in bpy.data.actions)]
+    for obj in sorted(bpy.data.objects, key=lambda o: o.name):
+        rows.append([_modifier_settings(m) for m in obj.modifiers])
+        if obj.type != 'MESH':
+            continue
+        settings = obj.rs_elastic
+        rows.append([(name, repr(getattr(settings, name))) for name in sorted(RESULT_SETTINGS)
+                     if hasattr(settings, name) and name not in ("mode_results", "solve_history")])
+        rows.append([m.frequency_hz for m in settings.mode_results])
+        rows.append([v.value for v in settings.solve_history])
+        rows.append([h.residual for h in settings.handles])
+        rows.append({k: _id_property_value(v) for k, v in settings.items()
+                     if k not in settings.bl_rna.properties})     # settings: compared above
+        keys = obj.data.shape_keys
+        if keys is None:
+            rows.append(None)
+            continue
+        for block in keys.key_blocks:
+            co = np.empty(len(block.data) * 3)
+            block.data.foreach_get("co", co)
+            rows.append((block.name, block.value, block.mute, block.relative_key.name,
+                         hashlib.sha256(co.tobytes()).hexdigest()))
+        tags = keys.get("rs_elastic")
+        rows.append(None if tags is None else tags.to_dict())
+        rows.append(_curves(keys))
+    if folder is not None:
+        rows.append(disk_fingerprint(folder))
+    return rows
