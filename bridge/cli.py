@@ -115,26 +115,19 @@ def _output_path(text):
 
 
 def _check_cache_target(obj, bake_to):
-    """A Mesh Cache bake (`bake_to` 'CACHE') writes a .pc2 next to the opened .blend
-    (``mesh_cache.bake_path``): refuse, before any work, a file never saved, or a place where
-    that file cannot be written (a folder that is not writable, or a file where a folder must
-    go)."""
+    """A Mesh Cache bake (`bake_to` 'CACHE') writes a .pc2 into the opened .blend's bakes folder
+    (``mesh_cache.bakes_folder``): refuse, before any work, a file never saved, or a place where
+    that folder cannot be made or written (a folder that is not writable, or a file in its
+    place)."""
     if bake_to != 'CACHE':
         return
     try:
-        path = mesh_cache.bake_path(obj)
+        folder = mesh_cache.bakes_folder()
     except InputError as exc:
         raise UsageError(f"{exc}, or pass --bake-to keys") from None
-    existing = path
-    while not os.path.exists(existing):
-        existing = os.path.dirname(existing)
-    if existing == path:
-        problem = None if _writable(path) else f"{path} is not writable"
-    else:
-        problem = (None if os.path.isdir(existing) and os.access(existing, os.W_OK)
-                   else f"{existing} is not a writable folder")
+    problem = mesh_cache.folder_problem(folder)
     if problem is not None:
-        raise UsageError(f"'{obj.name}' bakes to a Mesh Cache in {path}, and {problem}: pass "
+        raise UsageError(f"'{obj.name}' bakes to a Mesh Cache in {folder}, and {problem}: pass "
                          "--bake-to keys, or open a copy in a writable folder")
 
 

@@ -118,7 +118,7 @@ def new_bake_path(obj):
     return os.path.join(bakes_folder(), f"{name}.{uuid.uuid4().hex[:16]}.pc2")
 
 
-def _folder_problem(folder):
+def folder_problem(folder):
     """Why `folder` cannot be made or written to, or None."""
     path = folder
     while not os.path.lexists(path) and os.path.dirname(path) != path:
@@ -132,7 +132,7 @@ def _folder_problem(folder):
 
 def require_bake_folder(obj):
     """Refuse (InputError), before any work, a Mesh Cache bake that could not be written."""
-    problem = _folder_problem(bakes_folder())
+    problem = folder_problem(bakes_folder())
     if problem is not None:
         raise InputError(f"'{obj.name}' cannot be baked to a Mesh Cache: {problem}")
 

@@ -155,10 +155,9 @@ def test_a_read_only_folder_refuses_what_it_cannot_write_and_bakes_the_rest(tmp_
     assert failed(over_it, 2) == (f"cannot save over the open file {shot}: it or its folder is "
                                   "not writable; pass --output FILE.blend")
     cache = tmp_path / "shot" / "blendcache_shot"
-    assert failed(to_cache, 2).startswith(f"'Bar' bakes to a Mesh Cache in {cache}")
-    assert failed(to_cache, 2).endswith(f", and {tmp_path / 'shot'} is not a writable folder: "
-                                        "pass --bake-to keys, or open a copy in a writable "
-                                        "folder")
+    assert failed(to_cache, 2) == (f"'Bar' bakes to a Mesh Cache in {cache / 'bakes'}, and the "
+                                   f"folder {tmp_path / 'shot'} is not writable: pass --bake-to "
+                                   "keys, or open a copy in a writable folder")
     assert succeeded(elsewhere)[0] == f"rs_elastic: baked frames 1-12 of 'Bar' into {out}"
     assert {name: data for name, data in files(tmp_path).items() if name.startswith("shot")} \
         == {name: data for name, data in before.items() if name.startswith("shot")}
@@ -172,9 +171,9 @@ def test_a_file_where_the_cache_folder_goes_refuses_a_mesh_cache_bake(tmp_path, 
     before = files(tmp_path)
     message = failed(run_cli(shot, ["bake", "--object", "Bar", "--frames", "1-12",
                                     "--bake-to", "cache"]), 2)
-    assert message == (f"'Bar' bakes to a Mesh Cache in {cache / 'bakes' / 'Bar.pc2'}, and "
-                       f"{cache} is not a writable folder: pass --bake-to keys, or open a copy "
-                       "in a writable folder")
+    assert message == (f"'Bar' bakes to a Mesh Cache in {cache / 'bakes'}, and {cache} is a "
+                       "file, not a folder: pass --bake-to keys, or open a copy in a writable "
+                       "folder")
     assert files(tmp_path) == before
 
 
