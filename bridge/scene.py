@@ -9,11 +9,13 @@ class InputError(Exception):
 
 
 def require_mesh_object(obj):
-    """Raise InputError unless `obj` is a mesh object."""
+    """Raise InputError unless `obj` is a mesh object of this file (``require_local``) with
+    faces and a mesh of its own (``require_single_user``)."""
     if obj is None:
         raise InputError("No active object: select a mesh object")
     if obj.type != 'MESH':
         raise InputError(f"'{obj.name}' is a {obj.type.lower()}, not a mesh")
+    require_local(obj)
     if obj.mode == 'EDIT':
         # Edit-mode changes are not in obj.data until the mode is left.
         obj.update_from_editmode()
@@ -21,6 +23,31 @@ def require_mesh_object(obj):
         raise InputError(f"'{obj.name}' has an empty mesh (no faces)")
     require_single_user(obj)
     return obj
+
+
+MAKE_LOCAL = "make it local first (Object > Relations > Make Local > Selected Objects and Data)"
+
+
+def require_local(obj):
+    """Refuse an object or mesh that is linked from a library or is a library override: a file
+    saves nothing of a linked datablock (it is read from its library again on load), and an
+    override keeps only overridable properties (not the extension's settings, nor shape keys
+    added to its mesh). So a preparation or a bake would be lost without a word on save."""
+    if obj.library is not None:
+        raise InputError(f"'{obj.name}' is linked from the library '{obj.library.name}', so "
+                         f"nothing done to it can be saved in this file: {MAKE_LOCAL}")
+    if obj.override_library is not None:
+        raise InputError(f"'{obj.name}' is a library override, which cannot keep its "
+                         f"preparation or bake when the file is saved: {MAKE_LOCAL}")
+    mesh = obj.data
+    if mesh.library is not None:
+        raise InputError(f"The mesh '{mesh.name}' of '{obj.name}' is linked from the library "
+                         f"'{mesh.library.name}', so a bake (shape keys of the mesh) cannot be "
+                         f"saved in this file: {MAKE_LOCAL}")
+    if mesh.override_library is not None:
+        raise InputError(f"The mesh '{mesh.name}' of '{obj.name}' is a library override, which "
+                         f"cannot keep a bake (shape keys of the mesh) when the file is saved: "
+                         f"{MAKE_LOCAL}")
 
 
 def require_single_user(obj):
