@@ -23,9 +23,9 @@ import functools
 import bpy
 import numpy as np
 
-from ..solver import cache, embed, fem, materials, preparation, tetmesh
+from ..solver import cache, embed, fem, materials, preparation, proxy, tetmesh
 from ..solver.body import PreparedBody
-from . import armature, mesh_cache, scene, stage_cache, staleness
+from . import armature, estimates, mesh_cache, scene, stage_cache, staleness
 from .jobs import Cancelled, Job
 from .scene import InputError
 
@@ -53,6 +53,7 @@ class BodyInputs:
     envelope: float
     cache_dirs: list
     proxy_triangles: int = 0       # proxy budget (0: automatic, solver.proxy.triangle_budget)
+    mesher_time_limit: float = tetmesh.DEFAULT_TIME_LIMIT   # [s] fTetWild may run (not in a key)
     base_triangles: np.ndarray = None   # (t, 3) triangles of the base mesh (the pin rule reads them)
     pin_weights: np.ndarray = None      # (n,) float32 in [0, 1], None for a free body
     pins_hold_volume: bool = False      # rigged: the Follow Rig group holds the flesh it paints
@@ -70,7 +71,8 @@ class BodyInputs:
 
     @property
     def meshing(self):
-        return preparation.MeshingSettings(self.edge_length, self.envelope, self.proxy_triangles)
+        return preparation.MeshingSettings(self.edge_length, self.envelope, self.proxy_triangles,
+                                           self.mesher_time_limit)
 
     @property
     def reduced_settings(self):
@@ -160,6 +162,7 @@ def _surface_without_keys(obj, depsgraph):
 def read_inputs(obj, depsgraph, with_material=True):
     """Validate the object and snapshot everything the stages need. Raises InputError."""
     scene.require_body(obj)
+    scene.require_no_copies(obj, depsgraph)
     settings = obj.rs_elastic
     V, F = rest_surface(obj, depsgraph)
     try:
@@ -168,7 +171,8 @@ def read_inputs(obj, depsgraph, with_material=True):
         raise InputError(f"'{obj.name}': {exc}") from None
     inputs = BodyInputs(obj.name, V, F, scene.base_vertices(obj), settings.edge_length,
                         settings.envelope, stage_cache.cache_dirs(),
-                        proxy_triangles=settings.proxy_triangles)
+                        proxy_triangles=settings.proxy_triangles,
+                        mesher_time_limit=settings.mesher_time_limit)
     inputs.stored_tets = stage_cache.stored_tet_mesh(obj, inputs.tets_key)
     if not with_material:
         return inputs
@@ -221,14 +225,21 @@ def _pin_weights(obj, group):
 # --- the stages (worker-thread safe: no bpy) ------------------------------------------------------
 
 def proxy_for(inputs, job):
-    """The surface fTetWild meshes (``preparation.mesher_surface``); says which in the progress."""
+    """(V, F, closed) of the surface fTetWild meshes (``preparation.mesher_surface``); says which
+    and how long it should take in the progress. InputError at once, before fTetWild starts, when
+    the estimate is over the time limit."""
     V, F, closed = preparation.mesher_surface(inputs.surface_vertices, inputs.surface_triangles,
                                               inputs.meshing, say=job.step)
+    limit = inputs.mesher_time_limit
+    seconds = estimates.mesher_seconds(len(F))
+    if seconds > limit:
+        raise InputError(estimates.over_limit(inputs.object_name, len(F), closed, limit))
     if not closed:
         job.warn(f"'{inputs.object_name}' is not a closed manifold, so fTetWild meshes all "
                  f"{len(F):,} of its triangles (slower)")
-    job.step(0.05, f"Tetrahedralising {len(F):,} triangles with fTetWild")
-    return V, F
+    job.step(0.05, f"Tetrahedralising {len(F):,} triangles with fTetWild: roughly "
+                   f"{seconds:.0f} s (limit {limit:g} s)")
+    return V, F, closed
 
 
 def tet_stage(inputs, job):
@@ -244,10 +255,14 @@ def tet_stage(inputs, job):
         if stored is not None:
             X, T = stored
         else:
-            V, F = proxy_for(inputs, job)
+            V, F, closed = proxy_for(inputs, job)
             stage_cache.stats["tetrahedralize"] += 1
             try:
                 X, T = preparation.tet_mesh(V, F, inputs.meshing, should_cancel=job.is_cancelled)
+            except tetmesh.TetMeshTimeout as exc:
+                closed = closed and proxy.is_closed_manifold(F)     # a small surface is not tried
+                raise InputError(estimates.out_of_time(inputs.object_name, len(F), closed,
+                                                       exc.limit)) from None
             except tetmesh.TetMeshError as exc:
                 if job.is_cancelled():
                     raise Cancelled() from None

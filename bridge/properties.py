@@ -3,6 +3,8 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
+from ..solver import tetmesh
+
 # A setting's change can set off work above the data schema (the mode preview, Live, the tet
 # overlay). Those modules hand their reactions in at register time (bridge/handlers.py), so the
 # schema imports nothing of the bridge.
@@ -76,6 +78,12 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         name="Envelope", default=1e-3, min=1e-5, max=0.1, precision=4,
         description="How far the tet surface may stray from the mesh, as a fraction of the "
                     "bounding-box diagonal")
+    mesher_time_limit: FloatProperty(
+        name="Time Limit", default=tetmesh.DEFAULT_TIME_LIMIT, min=1.0, soft_max=3600.0,
+        precision=0, unit='TIME_ABSOLUTE',
+        description="Seconds fTetWild may run before it is stopped (the panel shows its "
+                    "estimate). A coarser Edge Length, fewer Proxy Triangles or a larger Envelope "
+                    "mesh faster")
     show_tets: BoolProperty(
         name="Show Tets", default=False, update=_show_tets_changed,
         description="Draw the tet mesh's edges in the viewport (an overlay; the mesh is not changed)")

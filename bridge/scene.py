@@ -9,11 +9,13 @@ class InputError(Exception):
 
 
 def require_mesh_object(obj):
-    """Raise InputError unless `obj` is a mesh object."""
+    """Raise InputError unless `obj` is a mesh object of this file (``require_local``) with
+    faces and a mesh of its own (``require_single_user``)."""
     if obj is None:
         raise InputError("No active object: select a mesh object")
     if obj.type != 'MESH':
         raise InputError(f"'{obj.name}' is a {obj.type.lower()}, not a mesh")
+    require_local(obj)
     if obj.mode == 'EDIT':
         # Edit-mode changes are not in obj.data until the mode is left.
         obj.update_from_editmode()
@@ -21,6 +23,31 @@ def require_mesh_object(obj):
         raise InputError(f"'{obj.name}' has an empty mesh (no faces)")
     require_single_user(obj)
     return obj
+
+
+MAKE_LOCAL = "make it local first (Object > Relations > Make Local > Selected Objects and Data)"
+
+
+def require_local(obj):
+    """Refuse an object or mesh that is linked from a library or is a library override: a file
+    saves nothing of a linked datablock (it is read from its library again on load), and an
+    override keeps only overridable properties (not the extension's settings, nor shape keys
+    added to its mesh). So a preparation or a bake would be lost without a word on save."""
+    if obj.library is not None:
+        raise InputError(f"'{obj.name}' is linked from the library '{obj.library.name}', so "
+                         f"nothing done to it can be saved in this file: {MAKE_LOCAL}")
+    if obj.override_library is not None:
+        raise InputError(f"'{obj.name}' is a library override, which cannot keep its "
+                         f"preparation or bake when the file is saved: {MAKE_LOCAL}")
+    mesh = obj.data
+    if mesh.library is not None:
+        raise InputError(f"The mesh '{mesh.name}' of '{obj.name}' is linked from the library "
+                         f"'{mesh.library.name}', so a bake (shape keys of the mesh) cannot be "
+                         f"saved in this file: {MAKE_LOCAL}")
+    if mesh.override_library is not None:
+        raise InputError(f"The mesh '{mesh.name}' of '{obj.name}' is a library override, which "
+                         f"cannot keep a bake (shape keys of the mesh) when the file is saved: "
+                         f"{MAKE_LOCAL}")
 
 
 def require_single_user(obj):
@@ -46,15 +73,46 @@ MATERIAL_LIMITS = {"youngs_modulus": ("Young's modulus", 1e13, "Pa"),
 def require_body(obj):
     """Everything an operator that tetrahedralises, prepares, solves or simulates needs of the
     object before it reads anything: a single-user mesh object, no modifier that copies its
-    geometry, and finite, physical settings. Raises InputError."""
+    geometry or replaces it, and finite, physical settings. Raises InputError."""
     require_mesh_object(obj)
     for modifier in obj.modifiers:
-        if modifier.type in COPYING_MODIFIERS and (modifier.show_viewport or modifier.show_render):
-            kind = modifier.type.replace("_", " ").title()
-            raise InputError(f"'{obj.name}' has a {kind} modifier ('{modifier.name}'), which "
-                             f"would copy the baked motion: apply the {kind} modifier first")
+        if modifier.show_viewport or modifier.show_render:
+            refuse_modifier(obj, modifier)
     check_settings(obj)
     return obj
+
+
+def refuse_modifier(obj, modifier):
+    """InputError for a modifier whose result would not play the bake: one that copies the
+    geometry (COPYING_MODIFIERS), or an Ocean that generates its own grid in place of the mesh
+    (its Displace geometry deforms the mesh, and is a deformer like any other)."""
+    kind = modifier.type.replace("_", " ").title()
+    if modifier.type in COPYING_MODIFIERS:
+        raise InputError(f"'{obj.name}' has a {kind} modifier ('{modifier.name}'), which "
+                         f"would copy the baked motion: apply the {kind} modifier first")
+    if modifier.type == 'OCEAN' and modifier.geometry_mode == 'GENERATE':
+        raise InputError(f"'{obj.name}' has an Ocean modifier ('{modifier.name}') that "
+                         "generates its own surface in place of the mesh, so a bake of the mesh "
+                         "would not show: set its Geometry to Displace, or remove it")
+
+
+def require_no_copies(obj, depsgraph):
+    """Refuse a body whose Geometry Nodes make instances of its own mesh (Instance on Points of
+    the group's input geometry, say): each would repeat the baked motion, as an Array does.
+    Instances of other objects (a scatter on the body) ride along and are fine. An instance's
+    mesh carries the name of the mesh it came from (its ``original`` is not the body's mesh).
+    Realised instances are plain mesh and are not told apart from the body."""
+    modifiers = [m for m in obj.modifiers if m.type == 'NODES' and m.show_viewport]
+    if not modifiers:
+        return
+    for instance in depsgraph.object_instances:
+        if (instance.is_instance and instance.parent is not None
+                and instance.parent.original == obj and instance.object.type == 'MESH'
+                and instance.object.data.name == obj.data.name):
+            names = ", ".join(f"'{m.name}'" for m in modifiers)
+            raise InputError(f"'{obj.name}' makes instances of its own mesh (Geometry Nodes "
+                             f"{names}), which would repeat the baked motion as an Array does: "
+                             "remove those instances first")
 
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)

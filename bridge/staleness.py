@@ -15,31 +15,109 @@ from . import mesh_cache
 from .scene import InputError, pin_weights
 from .stage_cache import PREPARED_INPUTS
 
-_SKIPPED_MODIFIER_PROPS = {"rna_type", "name", "show_expanded", "is_active", "show_in_editmode",
-                           "show_on_cage", "show_render", "use_pin_to_last", "persistent_uid",
-                           "is_override_data_editable", "execution_time", "use_apply_on_spline"}
+# Properties that do not change what a modifier makes: its name (the stack is read in order),
+# the panel's layout, statistics, and the render-only switch (Prepare reads the viewport result).
+_SKIPPED_PROPS = {"rna_type", "name", "show_expanded", "is_active", "show_in_editmode",
+                  "show_on_cage", "show_render", "use_pin_to_last", "persistent_uid",
+                  "is_override_data_editable", "is_override_data", "execution_time",
+                  "use_apply_on_spline", "show_group_selector", "show_manage_panel"}
+_NODE_BASE_PROPS = None     # bpy.types.Node's own properties (layout: location, label, colour...)
+
+
+def _plain(value):
+    """A property value as plain data whose repr is the same in every session (no addresses):
+    IDs by name, arrays, vectors and ID property groups as tuples, enum sets sorted, booleans
+    as 0 or 1 (an ID property saved as True is read back as 1)."""
+    if isinstance(value, bool):
+        return int(value)
+    if value is None or isinstance(value, (int, float, str)):
+        return value
+    if isinstance(value, bpy.types.ID):
+        return value.name
+    if isinstance(value, (set, frozenset)):
+        return tuple(sorted(value))
+    if hasattr(value, "to_dict"):               # an ID property group (Blender 4.2 GN inputs)
+        value = value.to_dict()
+    elif hasattr(value, "to_list"):             # an ID property array (a vector input)
+        value = value.to_list()
+    if isinstance(value, dict):
+        return tuple(sorted((key, _plain(item)) for key, item in value.items()))
+    try:
+        return tuple(_plain(item) for item in value)
+    except TypeError:
+        return type(value).__name__
+
+
+def _id_properties(struct):
+    """(key, value) of a struct's ID properties: a Geometry Nodes modifier's inputs up to
+    Blender 4.x. Structs without ID properties (modifiers from Blender 5.0 on) raise TypeError."""
+    try:
+        keys = sorted(struct.keys())
+    except TypeError:
+        return []
+    return [(key, _plain(struct[key])) for key in keys]
+
+
+def _struct_values(struct, seen, skipped=_SKIPPED_PROPS):
+    """(identifier, value) of what a struct's properties hold, through RNA only, so it reads any
+    modifier type: editable values, IDs by name (a node group by its nodes), nested structs (a
+    Geometry Nodes modifier's inputs from Blender 5.0 on) read in turn, each struct once."""
+    values = []
+    for prop in struct.bl_rna.properties:
+        name = prop.identifier
+        if name in skipped or name.startswith("open_") or prop.type == 'COLLECTION':
+            continue
+        if prop.type != 'POINTER':
+            if not prop.is_readonly:
+                values.append((name, _plain(getattr(struct, name, None))))
+            continue
+        value = getattr(struct, name, None)
+        if value is None or isinstance(value, bpy.types.ID):
+            if not prop.is_readonly:
+                values.append((name, _id_value(value, seen)))
+        elif (value.bl_rna.identifier, value.as_pointer()) not in seen:
+            # RNA may wrap the same data as several types (a GN modifier's inputs): key both.
+            seen.add((value.bl_rna.identifier, value.as_pointer()))
+            values.append((name, _struct_values(value, seen, skipped)))
+    return values + _id_properties(struct)
+
+
+def _id_value(value, seen):
+    """An ID a modifier points to: a node group by what it computes, any other by its name."""
+    if isinstance(value, bpy.types.NodeTree):
+        return _node_tree_values(value, seen)
+    return _plain(value)
+
+
+def _node_tree_values(tree, seen):
+    """What a node group computes: each node's type, settings and input values, and the links
+    (not the layout); nested groups read once each."""
+    global _NODE_BASE_PROPS
+    if ("NodeTree", tree.as_pointer()) in seen:
+        return tree.name
+    seen.add(("NodeTree", tree.as_pointer()))
+    if _NODE_BASE_PROPS is None:
+        _NODE_BASE_PROPS = frozenset(p.identifier for p in bpy.types.Node.bl_rna.properties)
+    skipped = _SKIPPED_PROPS | _NODE_BASE_PROPS
+    nodes = []
+    for node in sorted(tree.nodes, key=lambda n: n.name):
+        inputs = [(socket.identifier, _plain(getattr(socket, "default_value", None)))
+                  for socket in node.inputs]
+        nodes.append((node.bl_idname, node.name, node.mute, _struct_values(node, seen, skipped),
+                      inputs))
+    links = sorted((link.from_node.name, link.from_socket.identifier, link.to_node.name,
+                    link.to_socket.identifier, link.is_muted) for link in tree.links)
+    return (tree.name, nodes, links)
 
 
 def _modifier_stack(obj):
-    """A text describing the modifier stack: every modifier's type and settings."""
+    """A text describing the modifier stack: every modifier's type and settings, read the same
+    way for every type (``_struct_values``), Geometry Nodes with its node group and inputs."""
     parts = []
     for m in obj.modifiers:
         if mesh_cache.is_bake_modifier(obj, m):     # the bake's own player is not an input
             continue
-        values = []
-        for prop in m.bl_rna.properties:
-            if prop.identifier in _SKIPPED_MODIFIER_PROPS or prop.is_readonly \
-                    or prop.type == 'COLLECTION':
-                continue
-            value = getattr(m, prop.identifier, None)
-            if prop.type == 'POINTER':
-                value = getattr(value, "name", None)
-            elif getattr(prop, "is_array", False):
-                value = tuple(value)
-            values.append((prop.identifier, value))
-        if m.type == 'NODES':
-            values += [(k, repr(m[k])) for k in m.keys()]     # the node group's inputs
-        parts.append((m.type, m.name, values))
+        parts.append((m.type, m.name, _struct_values(m, set())))
     return repr(parts)
 
 

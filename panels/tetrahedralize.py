@@ -16,13 +16,13 @@ class RS_ELASTIC_PT_tet_mesh(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "edge_length")
         layout.prop(settings, "envelope")
         layout.prop(settings, "proxy_triangles")
+        layout.prop(settings, "mesher_time_limit")
         obj = context.active_object
         if obj.data.polygons:
-            triangles, meshed = estimates.mesh_estimate(obj, settings)
-            what = (f"a {meshed:,}-triangle proxy of {triangles:,}" if meshed < triangles
-                    else f"{triangles:,} triangles")
-            layout.label(text=f"fTetWild meshes {what}: roughly "
-                              f"{estimates.mesher_seconds(meshed):.0f} s", icon='TIME')
+            text, over = estimates.mesher_line(obj, settings)
+            layout.label(text=text, icon='ERROR' if over else 'TIME')
+            if over:
+                layout.label(text="Over the Time Limit: a new tet mesh is refused")
         layout.operator("rs_elastic.tetrahedralize", icon='MESH_ICOSPHERE')
         if settings.tets_key:
             col = layout.column(align=True)

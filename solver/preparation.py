@@ -27,6 +27,7 @@ class MeshingSettings:
     edge_length: float = 0.05          # fraction of the bounding-box diagonal
     envelope: float = 1e-3             # fraction of the bounding-box diagonal
     proxy_triangles: int = 0           # 0: ``proxy.triangle_budget`` of the edge length
+    time_limit: float = tetmesh.DEFAULT_TIME_LIMIT   # [s] fTetWild may run (``tetmesh``)
 
 
 @dataclasses.dataclass
@@ -50,10 +51,12 @@ def mesher_surface(V, F, settings, say=lambda fraction, message: None):
 
 
 def tet_mesh(V, F, settings, should_cancel=None):
-    """(X (N, 3), T (E, 4)) of fTetWild's tet mesh of the surface (V, F) (``mesher_surface``'s).
-    Raises ``tetmesh.TetMeshError``."""
+    """(X (N, 3), T (E, 4)) of fTetWild's tet mesh of the surface (V, F) (``mesher_surface``'s),
+    within ``settings.time_limit`` seconds. Raises ``tetmesh.TetMeshError`` (``TetMeshTimeout``
+    when out of time)."""
     return tetmesh.tetrahedralize(V, F, edge_length_fac=settings.edge_length,
-                                  epsilon=settings.envelope, should_cancel=should_cancel)
+                                  epsilon=settings.envelope, timeout=settings.time_limit,
+                                  should_cancel=should_cancel)
 
 
 def embedded(X, T, base_vertices):

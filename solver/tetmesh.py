@@ -30,12 +30,21 @@ from . import fem
 
 WORKER = Path(__file__).with_name("tetwild_worker.py")
 
+DEFAULT_TIME_LIMIT = 120.0  # [s] before the worker is killed (the Blender setting's default)
 FLAT_TOLERANCE = 1e-6      # thinnest principal extent / largest, below which a surface is flat
 VOLUME_TOLERANCE = 1e-9    # |enclosed volume| / diagonal^3, below which nothing is enclosed
 
 
 class TetMeshError(RuntimeError):
     """The surface cannot be tetrahedralised; the message is meant for the user."""
+
+
+class TetMeshTimeout(TetMeshError):
+    """fTetWild did not finish within ``limit`` seconds (the worker was killed)."""
+
+    def __init__(self, limit):
+        super().__init__(f"fTetWild did not finish within {limit:g} s")
+        self.limit = limit
 
 
 def check_surface(V, F):
@@ -72,20 +81,21 @@ def check_surface(V, F):
                            "sheets facing each other?); a closed mesh is needed")
 
 
-def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=600.0, python=None,
-                   num_threads=0, should_cancel=None):
+def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=DEFAULT_TIME_LIMIT,
+                   python=None, num_threads=0, should_cancel=None):
     """Tet mesh of the closed triangle surface (V, F) by fTetWild in a separate process.
 
     V: (n, 3) float vertices [m]; F: (m, 3) int triangles (triangulate polygons first).
     edge_length_fac: target edge length / bbox diagonal; epsilon: envelope / bbox diagonal.
-    timeout: seconds before the worker is killed; python: interpreter to run the worker
-    (default ``sys.executable``, which inside Blender is Blender's bundled Python);
+    timeout: seconds before the worker is killed (then TetMeshTimeout); python: interpreter to run
+    the worker (default ``sys.executable``, which inside Blender is Blender's bundled Python);
     num_threads: fTetWild threads, 0 = all cores; should_cancel: optional callable polled a few
     times a second, and when it returns True the worker is killed and TetMeshError raised.
     Vertices no face uses are ignored, and fTetWild sees the surface centred and scaled to a
     unit bounding-box diagonal (module docstring).
     Returns X (N, 3) float64 and T (E, 4) int64, positively oriented, every node used.
-    Raises TetMeshError for unusable input or when fTetWild fails, crashes or times out.
+    Raises TetMeshError for unusable input or when fTetWild fails or crashes, and its subclass
+    TetMeshTimeout when it runs out of time.
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F)
@@ -116,8 +126,9 @@ def _run_tetwild(V, F, edge_length_fac, epsilon, timeout, python, num_threads, s
     with tempfile.TemporaryDirectory(prefix="rs_elastic_tetwild_") as tmp:
         in_path, out_path = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         with open(in_path, "wb") as f:
-            np.savez(f, vertices=V, faces=F.astype(np.int32), edge_length_fac=float(edge_length_fac),
-                     epsilon=float(epsilon), num_threads=int(num_threads))
+            np.savez(f, vertices=V, faces=F.astype(np.int32),
+                     edge_length_fac=float(edge_length_fac), epsilon=float(epsilon),
+                     num_threads=int(num_threads), time_limit=float(timeout))
         _run_worker(python or sys.executable, in_path, out_path, tmp, timeout, should_cancel)
         try:
             with np.load(out_path, allow_pickle=False) as out:
@@ -146,7 +157,8 @@ def _worker_env():
 
 
 def _run_worker(python, in_path, out_path, cwd, timeout, should_cancel=None):
-    """Run the worker; raise TetMeshError on timeout, cancel, crash or non-zero exit."""
+    """Run the worker; raise TetMeshError on cancel, crash or non-zero exit, TetMeshTimeout when
+    it runs past ``timeout`` seconds (it is killed either way)."""
     try:
         process = subprocess.Popen([python, str(WORKER), in_path, out_path], cwd=cwd,
                                    env=_worker_env(), stdout=subprocess.DEVNULL,
@@ -166,8 +178,7 @@ def _run_worker(python, in_path, out_path, cwd, timeout, should_cancel=None):
             if time.monotonic() > deadline:
                 process.kill()
                 process.communicate()
-                raise TetMeshError(f"fTetWild did not finish within {timeout:g} s; try a larger "
-                                   "edge length or a simpler surface") from None
+                raise TetMeshTimeout(timeout) from None
     if process.returncode != 0:
         lines = [line for line in stderr.splitlines() if line.strip()]
         detail = f": {lines[-1].strip()}" if lines else ""

@@ -1,5 +1,7 @@
 """Tests for solver.tetmesh: fTetWild in a child process, input checks, crash isolation."""
 
+import signal
+import subprocess
 import sys
 import time
 
@@ -124,6 +126,45 @@ def test_hanging_worker_times_out(tmp_path, monkeypatch):
     monkeypatch.setattr(tetmesh, "WORKER", write_script(tmp_path, "import time\ntime.sleep(30)\n"))
     with pytest.raises(tetmesh.TetMeshError, match="did not finish"):
         tetmesh.tetrahedralize(*cube_surface(), timeout=1.0)
+
+
+def test_a_tiny_time_limit_stops_a_real_ftetwild_run(monkeypatch):
+    """A fine icosphere (about 20 s of fTetWild on two cores) with a 1 s limit: TetMeshTimeout
+    carrying the limit, raised within the limit plus the worker's start and one poll, and the
+    worker is gone (killed, not left meshing)."""
+    started = []
+    popen = tetmesh.subprocess.Popen
+
+    def remember(*args, **kwargs):
+        started.append(popen(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(tetmesh.subprocess, "Popen", remember)
+    start = time.monotonic()
+    with pytest.raises(tetmesh.TetMeshTimeout, match="did not finish within 1 s") as info:
+        tetmesh.tetrahedralize(*icosphere(5), edge_length_fac=0.01, timeout=1.0)
+    elapsed = time.monotonic() - start
+    assert info.value.limit == 1.0 and isinstance(info.value, tetmesh.TetMeshError)
+    assert elapsed < 1.0 + 3.0, elapsed
+    assert len(started) == 1 and started[0].poll() is not None     # killed and reaped
+
+
+def test_the_worker_bounds_its_own_time(tmp_path):
+    """A worker whose parent no longer watches it ends by itself a few seconds after its limit
+    (SIGALRM), inside fTetWild's native code too; unbounded, this run takes minutes."""
+    V, F = icosphere(5)
+    in_path, out_path = tmp_path / "in.npz", tmp_path / "out.npz"
+    with open(in_path, "wb") as f:
+        np.savez(f, vertices=V, faces=F.astype(np.int32), edge_length_fac=0.01, epsilon=1e-3,
+                 num_threads=0, time_limit=0.5)
+    start = time.monotonic()
+    result = subprocess.run([sys.executable, str(tetmesh.WORKER), str(in_path), str(out_path)],
+                            env=tetmesh._worker_env(), cwd=tmp_path, capture_output=True,
+                            timeout=120)
+    elapsed = time.monotonic() - start
+    assert result.returncode == -signal.SIGALRM
+    assert elapsed < 30.0, elapsed
+    assert not out_path.exists()
 
 
 def test_cancel_kills_the_worker_promptly(tmp_path, monkeypatch):
