@@ -5,14 +5,14 @@ preparation's keys, whether it is stale, and the cache files it has."""
 STATE = """
 import os, sys
 import blender_helpers as h
-bodies = sys.modules["bl_ext.user_default.rs_elastic.bridge.bodies"]
+bridge = sys.modules["bl_ext.user_default.rs_elastic.bridge"]
 obj = bpy.data.objects["Bar"]
 s = obj.rs_elastic
-cache = sorted(name for folder in bodies.cache_dirs() if os.path.isdir(folder)
+cache = sorted(name for folder in bridge.stage_cache.cache_dirs() if os.path.isdir(folder)
                for name in os.listdir(folder) if name.startswith(obj.name + "."))
 result = {"user": h.user_fingerprint(), "body": h.fingerprint(obj),
           "keys": [s.tets_key, s.prepared_key, s.reduced_key], "prepared": s.is_prepared,
-          "stale": bodies.stale_reason(obj), "youngs": s.youngs_modulus, "cache": cache}
+          "stale": bridge.staleness.stale_reason(obj), "youngs": s.youngs_modulus, "cache": cache}
 """
 
 

@@ -17,9 +17,9 @@ obj.rs_elastic.num_modes = 3
 """
 
 STATE = """
-bodies = sys.modules["bl_ext.user_default.rs_elastic.bridge.bodies"]
+staleness = sys.modules["bl_ext.user_default.rs_elastic.bridge.staleness"]
 obj = bpy.context.active_object
-result = [obj.rs_elastic.is_prepared, bodies.stale_reason(obj)]
+result = [obj.rs_elastic.is_prepared, staleness.stale_reason(obj)]
 """
 
 
