@@ -20,7 +20,7 @@ SOURCES   := blender_manifest.toml $(wildcard *.py bridge/*.py operators/*.py pa
 python_version = $(if $(filter 4.% 5.0,$(1)),3.11,3.13)
 python_for     = $(PYTHON$(subst .,,$(call python_version,$(1))))
 
-.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix test-ui ui-root demo bench clean
+.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix test-ui test-zoo ui-root demo bench clean
 
 all: build
 
@@ -79,6 +79,15 @@ test-solver: deps
 # No .deps here: inside Blender the extension must run on its bundled wheels only.
 test-blender: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) -m pytest -q tests/blender
+
+# The scene zoo in full (tests/blender/test_zoo.py): scenes generated so that every pair of
+# scene-feature values meets (every mesh modifier type, transforms, modes, linkage, bake targets,
+# frame ranges, bakers), each case in its own Blender process; test-blender runs its first cases.
+# The failures, grouped by cause: build/zoo-report.md.
+test-zoo: venv $(LINUX_ZIP)
+	mkdir -p build
+	RS_ELASTIC_ZOO=full RS_ELASTIC_ZOO_REPORT=build/zoo-report.md RS_ELASTIC_ZIP=$(LINUX_ZIP) \
+	    $(PY) -m pytest -q tests/blender/test_zoo.py
 
 # The whole suite: solver, then Blender on the newest LTS, then on every older supported Blender,
 # then the GUI tier.
