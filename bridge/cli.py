@@ -14,7 +14,7 @@ import sys
 
 import bpy
 
-from . import bake, mesh_cache, spacetime_inputs
+from . import bake, mesh_cache, spacetime_inputs, writes
 from .properties import LAST_FRAME
 from .scene import MAX_FRAMES, InputError
 
@@ -142,6 +142,17 @@ def _body(name):
     return obj
 
 
+def _leave_mode(obj):
+    """Object Mode for the bake, with a note for the report ('' if it was in it already). A file
+    saved in Edit, Sculpt or a paint mode opens in that mode; in the background no one is
+    editing, and what the mode held was written into the mesh when the file was saved."""
+    if obj.mode == 'OBJECT':
+        return ""
+    name = writes.mode_name(obj)
+    bpy.ops.object.mode_set(mode='OBJECT')
+    return f" ('{obj.name}' was saved in {name}: baked in Object Mode)"
+
+
 def _operator_error(exc):
     """One line from the RuntimeError an operator raised: its report, or for a Python error
     (a bug: Blender has printed its traceback) the error's last line."""
@@ -179,6 +190,7 @@ def bake_command(args):
     bake_to = obj.rs_elastic.bake_to if args.bake_to is None else args.bake_to.upper()
     _check_cache_target(obj, bake_to)
     bpy.context.view_layer.objects.active = obj
+    mode_note = _leave_mode(obj)
     obj.rs_elastic.bake_to = bake_to
     if frames is not None:
         obj.rs_elastic.use_scene_range = False
@@ -190,7 +202,7 @@ def bake_command(args):
     if not baked:
         raise CommandError(f"the {args.mode} bake of '{obj.name}' left no bake to save")
     status = spacetime_inputs.LAST_STATUS.get(obj.name) if args.mode == "spacetime" else None
-    report = (f"baked frames {baked[0]}-{baked[-1]} of '{obj.name}' into {output}"
+    report = (f"baked frames {baked[0]}-{baked[-1]} of '{obj.name}' into {output}{mode_note}"
               + ("" if status is None else f"\nrs_elastic: {status[1]}"))
     _save(output)
     return report

@@ -23,11 +23,13 @@ the modifier (Blender remaps its relative path when the .blend is saved elsewher
 folder is only informative. Bakes made before identities (``<object>.pc2``, a modifier named
 ``MODIFIER``) are recognised the same way.
 
-A bake's file is never written over: a new bake writes a new file, and the old one is deleted
-only once the new one plays, only from this .blend's own bakes folder, and only if no Mesh Cache
-modifier of any object still plays it. Saving the .blend under another folder or name gives the
-new file its own copy (a hard link where the disk allows, ``before_save``), so clearing a bake in
-one .blend never breaks another's.
+A bake's file is never written over: a new bake writes a new file. Files nothing plays any more
+(after Clear Bake or a re-bake) are deleted when the .blend is saved (``after_save``), only from
+its own bakes folder: until then undo can bring their bake back, and the saved .blend never plays
+a deleted file. Saving the .blend under another folder or name gives the new file its own copy
+(a hard link where the disk allows, ``before_save``), so clearing a bake in one .blend never
+breaks another's; the files written since the last save stay only where a saved .blend plays
+them.
 """
 import contextlib
 import os
@@ -185,21 +187,13 @@ def bake_file(obj, modifier=None):
     return None if modifier is None else _absolute(obj, modifier.filepath)
 
 
-def _played_anywhere(path):
-    """Whether a Mesh Cache modifier of any object plays `path`."""
-    path = os.path.realpath(path)
-    return any(m.type == 'MESH_CACHE' and os.path.realpath(_absolute(o, m.filepath)) == path
-               for o in bpy.data.objects for m in o.modifiers)
-
-
-def _delete_if_unused(path):
-    """Delete a bake's file that nothing plays any more, if it is in this .blend's own bakes
-    folder (a file elsewhere belongs to another .blend)."""
-    if not bpy.data.filepath or _played_anywhere(path):
-        return
-    if os.path.realpath(os.path.dirname(path)) != os.path.realpath(bakes_folder()):
-        return
-    writes.remove_file_quietly(path)
+def _delete_unplayed(paths):
+    """Delete the bake files of `paths` that no Mesh Cache modifier plays."""
+    played = {os.path.realpath(_absolute(o, m.filepath)) for o in bpy.data.objects
+              for m in o.modifiers if m.type == 'MESH_CACHE'}
+    for path in paths:
+        if os.path.realpath(path) not in played:
+            writes.remove_file_quietly(path)
 
 
 @contextlib.contextmanager
@@ -243,14 +237,13 @@ def _player(obj, transaction):
 
 def write(obj, frames, positions):
     """Write poses (F, n, 3) of consecutive ``frames`` to a new .pc2 and make the object's bake
-    modifier play it; the previous cache bake's file goes once nothing plays it. Returns the
-    new file's path."""
+    modifier play it; the previous cache bake's file goes at the next save if nothing plays it
+    then. Returns the new file's path."""
     with writes.transaction(f"Writing the Mesh Cache bake of '{obj.name}'") as transaction:
         path = new_bake_path(obj)
         _make_folders(os.path.dirname(path), transaction)
         transaction.undo(lambda: writes.remove_file_quietly(path))
         write_pc2(path, positions)
-        old = bake_file(obj)
         modifier = _player(obj, transaction)
         modifier.cache_format = 'PC2'
         modifier.filepath = bpy.path.relpath(path)
@@ -262,26 +255,24 @@ def write(obj, frames, positions):
         modifier.frame_scale = 1.0
         writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
         obj.rs_elastic.cache_bake_file = modifier.filepath
-        if old is not None:
-            transaction.after(lambda: _delete_if_unused(old))
+    _UNSAVED.add(path)
     return path
 
 
 def clear(obj):
-    """Remove the cache bake: its modifier, then its file once nothing plays it. Returns how many
-    frames it held, or None if the object has no cache bake."""
+    """Remove the cache bake's modifier (its file goes at the next save if nothing plays it
+    then). Returns how many frames it held, or None if the object has no cache bake."""
     modifier = owned_modifier(obj)
     if modifier is None:
         return None
     frames = len(frames_of(obj))
     with writes.transaction(f"Clearing the Mesh Cache bake of '{obj.name}'") as transaction:
-        path, name = bake_file(obj, modifier), modifier.name
+        name = modifier.name
         writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
         obj.rs_elastic.cache_bake_file = ""
         saved = _modifier_settings(obj, modifier)
         transaction.remove(lambda: _remove_modifier(obj, name),
                            undo=lambda: _restore_modifier(obj, saved))
-        transaction.after(lambda: _delete_if_unused(path))
     return frames
 
 
@@ -330,6 +321,7 @@ def poses(obj):
 
 # --- saving under another name --------------------------------------------------------------------
 
+_UNSAVED = set()   # bake files written since the open .blend was last saved where it is
 _MOVED = []     # during a save: (object, modifier, filepath before, record before, file made)
 
 
@@ -396,11 +388,26 @@ def _moved_players():
 
 def after_save(filepath):
     """save_post: a saved copy (the open file stays the old one) leaves the open file's bakes
-    playing its own files."""
+    playing their own files. Saved as the open file, the files its bakes folder holds that
+    nothing plays are deleted, and so are those written since the last save that the save
+    moved elsewhere (no saved .blend plays them)."""
     if not _same_path(filepath, bpy.data.filepath):
         for obj, modifier, before, record, _ in _moved_players():
             modifier.filepath, obj.rs_elastic.cache_bake_file = before, record
+        _MOVED.clear()
+        return
     _MOVED.clear()
+    folder = bakes_folder(filepath)
+    owned = [os.path.join(folder, name) for name in _listdir(folder) if name.endswith(".pc2")]
+    _delete_unplayed(owned + sorted(_UNSAVED))
+    _UNSAVED.clear()
+
+
+def _listdir(folder):
+    try:
+        return sorted(os.listdir(folder))
+    except OSError:
+        return []
 
 
 def after_failed_save(filepath):

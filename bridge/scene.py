@@ -28,6 +28,16 @@ def require_mesh_object(obj):
 MAKE_LOCAL = "make it local first (Object > Relations > Make Local > Selected Objects and Data)"
 
 
+def _make_local(obj):
+    """How to make a linked object local. Only in linked collections, Make Local > Selected would
+    make a local copy that no collection of the scene holds: its collection must come too."""
+    collections = obj.users_collection
+    if collections and all(c.library is not None for c in collections):
+        return (f"make it local first, with its collection '{collections[0].name}' (Object > "
+                "Relations > Make Local > All)")
+    return MAKE_LOCAL
+
+
 def require_local(obj):
     """Refuse an object or mesh that is linked from a library or is a library override: a file
     saves nothing of a linked datablock (it is read from its library again on load), and an
@@ -35,7 +45,7 @@ def require_local(obj):
     added to its mesh). So a preparation or a bake would be lost without a word on save."""
     if obj.library is not None:
         raise InputError(f"'{obj.name}' is linked from the library '{obj.library.name}', so "
-                         f"nothing done to it can be saved in this file: {MAKE_LOCAL}")
+                         f"nothing done to it can be saved in this file: {_make_local(obj)}")
     if obj.override_library is not None:
         raise InputError(f"'{obj.name}' is a library override, which cannot keep its "
                          f"preparation or bake when the file is saved: {MAKE_LOCAL}")

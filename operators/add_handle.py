@@ -31,6 +31,15 @@ def handle_vertices(obj, group_name):
     return group.name, indices
 
 
+def handle_collection(obj, scene):
+    """Where the handle's Empty goes: the body's first collection that this file may change (a
+    linked or overridden collection cannot take new objects), else the scene's own."""
+    for collection in obj.users_collection:
+        if collection.library is None and collection.override_library is None:
+            return collection
+    return scene.collection
+
+
 class RS_ELASTIC_OT_add_handle(bpy.types.Operator):
     """Add an Empty at the centroid of the selected vertices (or a vertex group); its keyed
     locations become targets of the space-time solve"""
@@ -57,8 +66,7 @@ class RS_ELASTIC_OT_add_handle(bpy.types.Operator):
         extent = np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))
         empty.empty_display_size = 0.04 * extent * max(obj.matrix_world.to_scale())
         empty.location = obj.matrix_world @ Vector(centroid)
-        collection = obj.users_collection[0] if obj.users_collection else context.scene.collection
-        collection.objects.link(empty)
+        handle_collection(obj, context.scene).objects.link(empty)
         handle = obj.rs_elastic.handles.add()
         handle.empty = empty
         handle.vertex_group = group_name

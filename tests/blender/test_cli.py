@@ -235,3 +235,30 @@ def test_a_handle_key_that_is_not_a_number_fails_in_one_line(tmp_path):
     assert message == ("The transform of handle 'Bar Handle' on frame 8 is not a finite number: "
                        "check the keys, drivers and parents that move it")
     assert not out.exists() and files(tmp_path) == before
+
+
+@pytest.mark.parametrize("mode", ['EDIT', 'SCULPT', 'WEIGHT_PAINT'])
+def test_a_file_saved_in_another_mode_bakes_as_in_object_mode(tmp_path, shot, mode):
+    """A file saved mid-edit opens in that mode; on the command line (no one editing) it bakes
+    in Object Mode, says so, and bakes what the same file saved in Object Mode bakes."""
+    argv = ["bake", "--object", "Bar", "--frames", "1-12", "--bake-to", "keys"]
+    in_object = tmp_path / "other" / "object.blend"
+    succeeded(run_cli(shot, argv + ["--output", str(in_object)]))
+    bpy.ops.wm.open_mainfile(filepath=str(shot))
+    make_active(bpy.data.objects["Bar"])
+    bpy.ops.object.mode_set(mode=mode)
+    bpy.ops.wm.save_mainfile()
+    in_mode = tmp_path / "other" / "mode.blend"
+    report = succeeded(run_cli(shot, argv + ["--output", str(in_mode)]))
+    mode_name = {'EDIT': "Edit Mode", 'SCULPT': "Sculpt Mode",
+                 'WEIGHT_PAINT': "Weight Paint mode"}[mode]
+    assert report[0] == (f"rs_elastic: baked frames 1-12 of 'Bar' into {in_mode} ('Bar' was "
+                         f"saved in {mode_name}: baked in Object Mode)")
+    tips = []
+    for path in (in_object, in_mode):
+        bpy.ops.wm.open_mainfile(filepath=str(path))
+        obj = bpy.data.objects["Bar"]
+        assert obj.mode == 'OBJECT'
+        tips.append([tip_at(obj, frame) for frame in (1, 6, 12)])
+    np.testing.assert_allclose(tips[1], tips[0], rtol=0, atol=1e-9)
+    assert np.linalg.norm(tips[0][2] - tips[0][0]) > 0.1      # the handle moved the tip

@@ -109,6 +109,8 @@ def test_a_duplicate_gets_its_own_bake_and_never_deletes_the_originals(ext, tmp_
     plays(copy, copy_poses)
     copy_file = played_file(copy)
     assert clear(obj) == {'FINISHED'}
+    assert os.path.isfile(original_file)       # until the save: undo may bring its bake back
+    bpy.ops.wm.save_mainfile()
     assert not os.path.exists(original_file)   # nothing plays it any more
     assert os.path.isfile(copy_file)
     plays(copy, copy_poses)
@@ -145,6 +147,8 @@ def test_a_users_mesh_cache_named_like_the_extensions_is_never_touched(ext, tmp_
     assert [m.name for m in kept] == ["RS Elastic Bake"]
     assert [(p, getattr(kept[0], p)) for p in PLAYER] == settings
     assert mine.read_bytes() == content
+    bpy.ops.wm.save_mainfile()
+    assert mine.read_bytes() == content
     assert files(tmp_path / "blendcache_shot" / "bakes") == []
 
 
@@ -161,11 +165,13 @@ def test_a_save_as_to_another_folder_keeps_the_bake_playing_and_clearable(ext, t
     own = tmp_path / "b" / "blendcache_take2" / "bakes"
     assert os.path.dirname(played_file(obj)) == str(own)
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert cache_modifiers(obj) == [] and files(own) == []
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "a" / "shot.blend"))
     obj = bpy.data.objects["Bar"]                      # the first .blend kept its own bake
     plays(obj, poses)
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert files(tmp_path / "a" / "blendcache_shot" / "bakes") == []
 
 
@@ -198,6 +204,7 @@ def test_a_renamed_body_in_a_moved_folder_keeps_its_bake_playing_and_clearable(e
     assert ext.bridge.bake.bake_frames(obj) == FRAMES
     plays(obj, poses)
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert files(tmp_path / "moved" / "blendcache_shot" / "bakes") == []
 
 
@@ -222,6 +229,7 @@ def test_a_bake_from_before_identities_is_recognised_and_cleared(ext, tmp_path):
     assert ext.bridge.bake.bake_frames(obj) == FRAMES
     plays(obj, poses)
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert cache_modifiers(obj) == [] and not os.path.exists(path)
 
 
@@ -240,6 +248,7 @@ def test_a_bake_from_before_identities_saved_elsewhere_by_the_old_extension(ext,
     assert ext.bridge.bake.bake_frames(obj) == FRAMES
     plays(obj, poses)
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert cache_modifiers(obj) == [] and os.path.isfile(path)
 
 
@@ -258,4 +267,28 @@ def test_the_command_line_saving_elsewhere_gives_the_output_its_own_bake(ext, tm
     assert ext.bridge.bake.bake_frames(obj) == SHOT_FRAMES
     assert os.path.dirname(played_file(obj)) == str(out.parent / "blendcache_out" / "bakes")
     assert clear(obj) == {'FINISHED'}
+    bpy.ops.wm.save_mainfile()
     assert files(out.parent / "blendcache_out" / "bakes") == []
+    # The bake the command line wrote beside the opened file is played by no saved .blend.
+    assert files(tmp_path / "blendcache_shot" / "bakes") == []
+
+
+def test_undo_brings_back_a_cleared_or_replaced_bake_with_its_file(ext, tmp_path):
+    """Clear Bake and a re-bake leave the old file until the save; undo plays it again; the save
+    deletes only what nothing plays."""
+    obj = make_bar()
+    saved(tmp_path / "shot.blend")
+    poses = cache_bake(ext, obj, 0.2)
+    first = played_file(obj)
+    bpy.ops.ed.undo_push(message="baked")
+    assert clear(obj) == {'FINISHED'}
+    bpy.ops.ed.undo_push(message="cleared")
+    bpy.ops.ed.undo()
+    obj = bpy.data.objects["Bar"]
+    assert played_file(obj) == first
+    plays(obj, poses)
+    again = cache_bake(ext, obj, 0.5)                     # a re-bake: a new file
+    assert played_file(obj) != first and os.path.isfile(first)
+    bpy.ops.wm.save_mainfile()
+    assert files(tmp_path / "blendcache_shot" / "bakes") == [os.path.basename(played_file(obj))]
+    plays(obj, again)

@@ -594,8 +594,11 @@ def modifiers_state(obj):
     rows = []
     for m in obj.modifiers:
         row = [m.name, m.type, m.show_viewport, m.show_render]
-        if m.type == 'MESH_CACHE':    # the file it reads (a save-as remaps relative paths)
-            row += [os.path.normpath(_bpy().path.abspath(m.filepath)), m.frame_start]
+        if m.type == 'MESH_CACHE':    # what it plays (a save-as plays the new file's own copy)
+            path = _bpy().path.abspath(m.filepath)
+            content = hashlib.sha1(open(path, "rb").read()).hexdigest() \
+                if os.path.isfile(path) else "no file"
+            row += [content, m.frame_start]
         rows.append(tuple(row))
     return rows
 
@@ -614,7 +617,8 @@ def mesh_and_settings(obj):
             co = np.empty(len(block.data) * 3)
             block.data.foreach_get("co", co)
             h.update(repr((block.name, block.value, block.mute)).encode() + co.tobytes())
-    h.update(repr(_rna_values(obj.rs_elastic)).encode())
+    # Where the bake's file is (it moves with a save-as): the modifier's row says what it plays.
+    h.update(repr(_rna_values(obj.rs_elastic, skip=("cache_bake_file",))).encode())
     return h.hexdigest()
 
 
@@ -719,6 +723,7 @@ class Run:
         self.user_before_bake = None
         self.violations = []
         self.panel_failures = set()
+        self.last_refusal = ""         # the refusal whose advice is being followed
 
     # -- reporting
     def _say(self, step, outcome, violations, seconds):
@@ -738,11 +743,12 @@ class Run:
         found.append(Violation(step, invariant, self._clean(message)))
 
     # -- the pieces of a step
-    def enter_mode(self):
+    def enter_mode(self, mode=None):
+        """Make the body active in `mode` (a MODES value; default: the case's)."""
         bpy = _bpy()
         from blender_helpers import make_active
         make_active(body())
-        mode = BLENDER_MODE[self.case.mode]
+        mode = BLENDER_MODE[mode or self.case.mode]
         if mode != 'OBJECT':
             bpy.ops.object.mode_set(mode=mode)
 
@@ -799,10 +805,10 @@ class Run:
             self.violation(found, step, "traceback", f"returned {sorted(result)}")
         return next(iter(result))
 
-    def operator_step(self, step, call, after=None):
-        """Run an operator in the case's mode, leave the mode, and check: no traceback, a
-        refusal changed nothing, the panels draw. `after(found)` adds the step's own checks
-        when it finished. Returns the outcome."""
+    def operator_step(self, step, call, after=None, mode=None):
+        """Run an operator in the case's mode (or `mode`), leave the mode, and check: no
+        traceback, a refusal changed nothing, the panels draw. `after(found)` adds the step's
+        own checks when it finished. Returns the outcome."""
         self._begin(step)
         start = time.monotonic()
         found = []
@@ -810,10 +816,11 @@ class Run:
         calls_before = len(self.recorder.calls)
         with Captured(self.folders["harness"]) as out:
             try:
-                self.enter_mode()
+                self.enter_mode(mode)
             except Exception as exc:   # noqa: BLE001
                 self.violation(found, step, "harness",
-                               f"could not enter {self.case.mode} mode: {first_line(exc)}")
+                               f"could not enter {mode or self.case.mode} mode: "
+                               f"{first_line(exc)}")
                 self._say(step, "harness", found, time.monotonic() - start)
                 self.violations += found
                 return "harness"
@@ -837,6 +844,44 @@ class Run:
         self._say(step, outcome, found, time.monotonic() - start)
         self.violations += found
         return outcome
+
+    def user_step(self, step, call, after=None):
+        """`operator_step`, then, while the operator refuses with advice (switch to Object Mode,
+        make it single-user, make it local), follow the advice as the user would and run it
+        again: the advice must cure its refusal. So every case reaches the bake whatever its
+        mode and linkage, and each refusal's advice is checked to work."""
+        outcome, mode = self.operator_step(step, call, after), None
+        for _ in range(len(ADVICE) + 1):
+            advice = advice_in(outcome)
+            if advice is None:
+                break
+            if advice == "object mode":
+                mode = "object"
+            else:
+                self.last_refusal = outcome
+                self.plain_step(f"follow the advice: {advice}", lambda: self.follow(advice))
+            again = self.operator_step(f"{step} (after: {advice})", call, after, mode=mode)
+            if advice_in(again) == advice:
+                found = [Violation(step, "advice", f"following the advice '{advice}' did not "
+                                   f"cure the refusal: {again}")]
+                self._say(f"{step} (after: {advice})", "advice", found, 0.0)
+                self.violations += found
+                break
+            outcome = again
+        return outcome
+
+    def follow(self, advice):
+        """Do what the refusal says, through Blender's own operators (the menu items it names)."""
+        bpy = _bpy()
+        from blender_helpers import make_active
+        self.leave_mode()
+        make_active(body())
+        if advice == "single user":
+            bpy.ops.object.make_single_user(type='SELECTED_OBJECTS', object=True, obdata=True)
+        elif advice == "local":
+            whole = "Make Local > All" in self.last_refusal
+            bpy.ops.object.make_local(type='ALL' if whole else 'SELECT_OBDATA')
+        make_active(body())
 
     def plain_step(self, step, action, checks=()):
         """A user action that is not an operator (save, open, undo, a property): no traceback,
@@ -900,11 +945,11 @@ class Run:
     def run(self):
         bpy = _bpy()
         ops = bpy.ops.rs_elastic
-        self.operator_step("tetrahedralize", ops.tetrahedralize)
-        self.operator_step("prepare", ops.prepare)
+        self.user_step("tetrahedralize", ops.tetrahedralize)
+        self.user_step("prepare", ops.prepare)
         if self.case.added == "afterprep":
             self.plain_step("add the modifier", self.add_modifier_now)
-        if self.operator_step("add_handle",
+        if self.user_step("add_handle",
                               lambda: ops.add_handle(vertex_group="Tip")) == "FINISHED":
             self.plain_step("key the handle", self.key_handle)
         self.preview_step()
@@ -916,10 +961,10 @@ class Run:
         self.save_and_reopen("save-as another folder, reopen",
                              self.folders["other"] / "shot.blend")
         self.clear_step()
-        self.operator_step("keep_take", ops.keep_take)
-        self.operator_step("interpolate_shape_keys", self.interpolate)
+        self.user_step("keep_take", ops.keep_take)
+        self.user_step("interpolate_shape_keys", self.interpolate)
         self.reference = None          # the take replaced the bake
-        self.save_and_reopen("final save, reopen", None)
+        self.save_and_reopen("final save, reopen", None, [no_unplayed_bakes])
 
     def add_modifier_now(self):
         """What the user does after Prepare: add the case's modifier to the body."""
@@ -968,7 +1013,7 @@ class Run:
         self.user_before_bake = scene_state()["the user's data"]
         before = scene_state()
         bpy.ops.ed.undo_push(message="zoo: before the bake")
-        outcome = self.operator_step(self.case.baker, operator, after=self.baked_checks)
+        outcome = self.user_step(self.case.baker, operator, after=self.baked_checks)
         if outcome != "FINISHED":
             return
         after = scene_state()
@@ -984,12 +1029,13 @@ class Run:
             return
         self.check_playback(found, self.case.baker)
 
-    def cli_bake(self):
+    def cli_bake(self, step=None):
         """Save the file in the case's mode, run the command line on it in a new Blender, and
-        open what it saved."""
+        open what it saved; on a refusal with advice (make it single-user, make it local),
+        follow it and run the command line again."""
         bpy = _bpy()
         self.user_before_bake = scene_state()["the user's data"]
-        step = self.case.baker
+        step = step or self.case.baker
         shot = self.folders["scene"] / "shot.blend"
         output = self.folders["cli"] / "out.blend"
         poses = self.folders["harness"] / "cli_poses.npz"
@@ -1026,6 +1072,12 @@ class Run:
         outcome = f"exit {result.returncode}" + (f": {errors[0]}" if errors else "")
         self._say(step, outcome, found, time.monotonic() - start)
         self.violations += found
+        advice = advice_in(outcome)
+        if advice is not None and step == self.case.baker:
+            self.last_refusal = outcome
+            self.plain_step(f"follow the advice: {advice}", lambda: self.follow(advice))
+            self.cli_bake(f"{step} (after: {advice})")
+            return
         if result.returncode != 0 or not output.exists():
             return
         if poses.exists():
@@ -1040,7 +1092,7 @@ class Run:
             self.leave_mode()          # the file was saved in the case's mode
         self.plain_step("open the command line's output", open_output, checks)
 
-    def save_and_reopen(self, step, path):
+    def save_and_reopen(self, step, path, checks=()):
         bpy = _bpy()
         before = scene_state()
 
@@ -1055,14 +1107,14 @@ class Run:
             self.leave_mode()          # a file saved in Edit Mode opens in it
         self.plain_step(step, action,
                         [self.expect_state(before, "reopen", "reopened, these"),
-                         self.check_playback])
+                         self.check_playback, *checks])
 
     def clear_step(self):
         bpy = _bpy()
         before = scene_state()
         cache = self.cache_file()
         bpy.ops.ed.undo_push(message="zoo: before Clear Bake")
-        outcome = self.operator_step("clear_bake", bpy.ops.rs_elastic.clear_bake,
+        outcome = self.user_step("clear_bake", bpy.ops.rs_elastic.clear_bake,
                                      after=lambda found: self.cleared_checks(found, cache))
         if outcome != "FINISHED":
             return
@@ -1080,8 +1132,6 @@ class Run:
         step = "clear_bake"
         if self.ext.bridge.bake.bake_frames(obj) or obj.modifiers.get("RS Elastic Bake"):
             self.violation(found, step, "clear", "finished, yet the bake is still there")
-        if cache is not None and os.path.exists(cache):
-            self.violation(found, step, "clear", "finished, yet left the bake's .pc2 on disk")
         if self.user_before_bake is not None and \
                 scene_state()["the user's data"] != self.user_before_bake:
             self.violation(found, step, "clear",
@@ -1095,6 +1145,31 @@ class Run:
         return _bpy().ops.rs_elastic.interpolate_shape_keys(
             key_from=names[0] if names else "Basis", key_to=takes[-1] if takes else "Basis",
             output='KEYS', count=2)
+
+
+ADVICE = (("switch to Object Mode", "object mode"), ("make it single-user", "single user"),
+          ("make it local", "local"))
+
+
+def advice_in(outcome):
+    """The advice a refusal gives ("object mode", "single user", "local"), or None."""
+    if not outcome.startswith(("refused", "exit 1")):
+        return None
+    return next((advice for words, advice in ADVICE if words in outcome), None)
+
+
+def no_unplayed_bakes(found, step):
+    """After a save: the open .blend's bakes folder holds only files a Mesh Cache plays."""
+    bpy = _bpy()
+    folder = os.path.join(os.path.dirname(bpy.data.filepath),
+                          f"blendcache_{pathlib.Path(bpy.data.filepath).stem}", "bakes")
+    played = {os.path.realpath(bpy.path.abspath(m.filepath)) for o in bpy.data.objects
+              for m in o.modifiers if m.type == 'MESH_CACHE'}
+    left = [name for name in (sorted(os.listdir(folder)) if os.path.isdir(folder) else [])
+            if os.path.realpath(os.path.join(folder, name)) not in played]
+    if left:
+        found.append(Violation(step, "clear", f"saved, the bakes folder keeps {len(left)} "
+                                              f"file(s) nothing plays: {left[0]}"))
 
 
 def _editable(obj):
