@@ -133,3 +133,59 @@ def test_made_local_it_prepares_bakes_and_keeps_both(library, tmp_path, make):
     assert obj.rs_elastic.is_prepared and key_names(obj) == baked
     assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}
     assert key_names(obj) == []
+
+
+def collection_library(tmp_path):
+    """collection.blend whose collection 'Props' holds a small bar; the test starts from an empty
+    file saved next to it."""
+    bar = small_bar(use_scene_range=False, frame_start=1, frame_end=4)
+    props = bpy.data.collections.new("Props")
+    props.objects.link(bar)
+    path = tmp_path / "collection.blend"
+    bpy.data.libraries.write(str(path), {props}, fake_user=True)
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "shot.blend"))
+    return path
+
+
+def test_a_body_in_a_linked_collection_is_told_to_bring_its_collection(tmp_path):
+    """Make Local > Selected on an object that only a linked collection holds makes a local
+    copy no collection of the scene holds; the refusal names the fix that works."""
+    props = link(collection_library(tmp_path), collections=["Props"])["collections"][0]
+    bpy.context.scene.collection.children.link(props)
+    obj = props.objects["Bar"]
+    make_active(obj)
+    assert refusal(bpy.ops.rs_elastic.prepare) == (
+        "'Bar' is linked from the library 'collection.blend', so nothing done to it can be saved "
+        "in this file: make it local first, with its collection 'Props' (Object > Relations > "
+        "Make Local > All)")
+    assert bpy.ops.object.make_local(type='ALL') == {'FINISHED'}
+    obj = bpy.context.view_layer.objects["Bar"]
+    make_active(obj)
+    assert obj.library is None and bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+
+
+def test_a_handle_of_a_body_in_an_overridden_collection_goes_where_it_can_be_saved(tmp_path):
+    """An overridden collection cannot take new objects: Add Handle raised a traceback there and
+    left its Empty behind. Now the Empty goes into the scene's own collection."""
+    props = link(collection_library(tmp_path), collections=["Props"])["collections"][0]
+    bpy.context.scene.collection.children.link(props)
+    override = props.override_hierarchy_create(bpy.context.scene, bpy.context.view_layer,
+                                               do_fully_editable=True)
+    if props.name in bpy.context.scene.collection.children:
+        bpy.context.scene.collection.children.unlink(props)
+    obj = override.objects["Bar"]
+    make_active(obj)
+    assert bpy.ops.object.make_local(type='SELECT_OBDATA') == {'FINISHED'}
+    obj = bpy.context.view_layer.objects["Bar"]
+    make_active(obj)
+    assert obj.override_library is None and obj.library is None
+    assert all(c.override_library is not None for c in obj.users_collection)
+    obj.vertex_groups.new(name="Tip").add([0], 1.0, 'REPLACE')
+    assert bpy.ops.rs_elastic.add_handle(vertex_group="Tip") == {'FINISHED'}
+    empty = obj.rs_elastic.handles[0].empty
+    assert list(empty.users_collection) == [bpy.context.scene.collection]
+    name = empty.name
+    bpy.ops.wm.save_mainfile()
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "shot.blend"))
+    assert bpy.data.objects["Bar"].rs_elastic.handles[0].empty.name == name

@@ -514,6 +514,9 @@ def build_body(case, folder):
     settings.use_scene_range = False
     settings.frame_start, settings.frame_end = 1, case.frames
     settings.bake_to = case.target.upper()
+    # A generating modifier (Skin on a closed bar) can hand the mesher a surface it works on for
+    # minutes: the time limit the user would set keeps the case within its bound, refused.
+    settings.mesher_time_limit = 30.0
     x = vertices(obj)[:, 0]
     obj.vertex_groups.new(name="Tip").add([int(i) for i in np.flatnonzero(x > 4.0 - 1e-9)],
                                           1.0, 'REPLACE')
