@@ -99,7 +99,7 @@ test-matrix: $(LINUX_ZIP) $(foreach v,$(MATRIX),.venv-bpy-$(v)/.stamp)
 	@for v in $(MATRIX); do \
 	    echo "== Blender $$v (bpy module, Python $$(.venv-bpy-$$v/bin/python -c 'import sys; print(sys.version.split()[0])'))"; \
 	    for zip in dist/*.zip; do .venv-bpy-$$v/bin/python tools/ext_tool.py validate "$$zip" || exit 1; done; \
-	    RS_ELASTIC_ZIP=$(LINUX_ZIP) .venv-bpy-$$v/bin/python -m pytest -q tests/blender || exit 1; \
+	    RS_ELASTIC_ZOO_SAMPLE=8 RS_ELASTIC_ZIP=$(LINUX_ZIP) .venv-bpy-$$v/bin/python -m pytest -q tests/blender || exit 1; \
 	done
 
 # The GUI tier (tests/ui): Debian's Blender in a real window under Xvfb, driven by real input

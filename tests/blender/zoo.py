@@ -186,11 +186,11 @@ def pairwise(values, seed=SEED, candidates=24):
     return cases
 
 
-def cases(full, modifier_types=None):
-    """The zoo's cases: the whole pairwise set (`full`), or its first SAMPLE_SIZE cases."""
+def cases(full, modifier_types=None, sample=SAMPLE_SIZE):
+    """The zoo's cases: the whole pairwise set (`full`), or its first `sample` cases."""
     values = axis_values(mesh_modifier_types() if modifier_types is None else modifier_types)
     drawn = pairwise(values)
-    return drawn if full else drawn[:SAMPLE_SIZE]
+    return drawn if full else drawn[:sample]
 
 
 # --- what went wrong --------------------------------------------------------------------------
@@ -516,7 +516,7 @@ def build_body(case, folder):
     settings.bake_to = case.target.upper()
     # A generating modifier (Skin on a closed bar) can hand the mesher a surface it works on for
     # minutes: the time limit the user would set keeps the case within its bound, refused.
-    settings.mesher_time_limit = 30.0
+    settings.mesher_time_limit = 10.0
     x = vertices(obj)[:, 0]
     obj.vertex_groups.new(name="Tip").add([int(i) for i in np.flatnonzero(x > 4.0 - 1e-9)],
                                           1.0, 'REPLACE')
@@ -850,7 +850,7 @@ class Run:
 
     def user_step(self, step, call, after=None):
         """`operator_step`, then, while the operator refuses with advice (switch to Object Mode,
-        make it single-user, make it local), follow the advice as the user would and run it
+        make it single-user, make it local, prepare again), follow it as the user would and run it
         again: the advice must cure its refusal. So every case reaches the bake whatever its
         mode and linkage, and each refusal's advice is checked to work."""
         outcome, mode = self.operator_step(step, call, after), None
@@ -860,6 +860,11 @@ class Run:
                 break
             if advice == "object mode":
                 mode = "object"
+            elif advice == "prepare":      # an operator itself, checked as one; it may refuse
+                prepare = _bpy().ops.rs_elastic.prepare
+                if self.operator_step(f"prepare (advised by {step})", prepare,
+                                      mode="object") != "FINISHED":
+                    break
             else:
                 self.last_refusal = outcome
                 self.plain_step(f"follow the advice: {advice}", lambda: self.follow(advice))
@@ -1151,7 +1156,7 @@ class Run:
 
 
 ADVICE = (("switch to Object Mode", "object mode"), ("make it single-user", "single user"),
-          ("make it local", "local"))
+          ("make it local", "local"), (": prepare again", "prepare"))
 
 
 def advice_in(outcome):
