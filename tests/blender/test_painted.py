@@ -1,8 +1,9 @@
 """A painted material end to end (issue 28, item 2): `obj.rs_elastic.stiffness_group` and
 `stiffness_ratio` set the Young's modulus of each tet.
 
-Oracles: the full-space FEM of the prepared body's own tets with each tet's Young's modulus
-(scipy's shift-invert eigensolver for the frequencies, a sparse solve for the static sag); the
+Oracles: the full-space FEM of the prepared body's own tets with each tet's Young's modulus,
+assembled in this file (scipy.sparse.linalg.eigsh shift-invert for the frequencies, a sparse
+solve for the static sag); the
 order of the sags of the uniform stiff, the painted and the uniform soft bar; the keys and the
 fingerprint; the fault suite's one-line refusals that change nothing.
 """
@@ -15,13 +16,16 @@ import bpy
 from blender_helpers import make_active, make_bar, user_fingerprint, vertices
 from test_faults import refusal
 
-YOUNGS, RATIO = 3.0e7, 1.0 / 3.0
+YOUNGS = 3.0e7
+RATIO = float(np.float32(1.0 / 3.0))   # as the float property holds it
 PAINTED_UP_TO = 3.0     # vertices beyond x = 3 m are outside the group: weight 0
 
 
 def stiffness_weights(rest):
-    """(n,) what the test paints: 1 - x / 5 up to x = 3 m, 0 outside the group (the tip)."""
-    return np.where(rest[:, 0] <= PAINTED_UP_TO + 1e-9, 1.0 - rest[:, 0] / 5.0, 0.0)
+    """(n,) what the test paints: 1 - x / 5 up to x = 3 m, 0 outside the group (the tip), as
+    the float32 values a vertex group holds."""
+    painted = np.where(rest[:, 0] <= PAINTED_UP_TO + 1e-9, 1.0 - rest[:, 0] / 5.0, 0.0)
+    return painted.astype(np.float32).astype(np.float64)
 
 
 def painted_bar(name="Bar", ratio=RATIO):
@@ -38,16 +42,56 @@ def painted_bar(name="Bar", ratio=RATIO):
     return obj
 
 
+def reference_stiffness(X, T, tet_youngs, poisson):
+    """csr K (3N, 3N) = sum_e V_e B_e^T D_e B_e for per-tet tet_youngs (E,) [Pa], assembled
+    here (Voigt strains, shape functions from inverting [1 x y z], the textbook isotropic D_e),
+    not by the extension's fem."""
+    n_tets = len(T)
+    P = np.concatenate([np.ones((n_tets, 4, 1)), X[T]], axis=2)
+    grads = np.transpose(np.linalg.inv(P)[:, 1:, :], (0, 2, 1))       # (E, 4, 3)
+    volumes = np.abs(np.linalg.det(P)) / 6.0
+    gx, gy, gz = grads[..., 0], grads[..., 1], grads[..., 2]
+    B = np.zeros((n_tets, 6, 12))                                      # [xx yy zz 2xy 2yz 2xz]
+    B[:, 0, 0::3], B[:, 1, 1::3], B[:, 2, 2::3] = gx, gy, gz
+    B[:, 3, 0::3], B[:, 3, 1::3] = gy, gx
+    B[:, 4, 1::3], B[:, 4, 2::3] = gz, gy
+    B[:, 5, 0::3], B[:, 5, 2::3] = gz, gx
+    scale = tet_youngs / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    D = np.zeros((n_tets, 6, 6))
+    D[:, :3, :3] = (scale * poisson)[:, None, None]
+    D[:, [0, 1, 2], [0, 1, 2]] = (scale * (1.0 - poisson))[:, None]
+    D[:, [3, 4, 5], [3, 4, 5]] = (scale * (1.0 - 2.0 * poisson) / 2.0)[:, None]
+    K_e = volumes[:, None, None] * np.einsum("eki,ekl,elj->eij", B, D, B)
+    dofs = (3 * T[:, :, None] + np.arange(3)).reshape(n_tets, 12)
+    rows, cols = np.broadcast_arrays(dofs[:, :, None], dofs[:, None, :])
+    return sp.coo_matrix((K_e.ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(3 * len(X),) * 2).tocsr()
+
+
+def reference_masses(X, T, density):
+    """(N,) lumped masses [kg]: a quarter of each tet's mass on each of its nodes."""
+    volumes = np.abs(np.linalg.det(X[T[:, 1:]] - X[T[:, :1]])) / 6.0
+    masses = np.zeros(len(X))
+    np.add.at(masses, T, np.repeat(density * volumes[:, None] / 4.0, 4, axis=1))
+    return masses
+
+
+def painted_tet_youngs(ext, body, weights, ratio):
+    """(E,) YOUNGS * ratio ** (1 - w_e) [Pa], w_e the mean of the tet's nodes' share of the
+    painted vertex weights (n,) (``rig.node_values``)."""
+    X, T = body.nodes, body.tets
+    nodes = ext.solver.rig.node_values(body.tet_body.embedding, weights, X, T)[:, 0]
+    return YOUNGS * ratio ** (1.0 - np.clip(nodes[T].mean(axis=1), 0.0, 1.0))
+
+
 def full_space(ext, obj, body, weights, ratio):
     """(K (3N, 3N) csr of the body's own tets with each tet's Young's modulus, lumped masses
-    (N,), free degrees of freedom): the solver's assembly, fed the weights the test painted."""
-    solver = ext.solver
+    (N,), free degrees of freedom), assembled here, each tet's modulus ``painted_tet_youngs``."""
     X, T = body.nodes, body.tets
-    tet_body = solver.preparation.embedded(X, T, vertices(obj))
-    tet_youngs = YOUNGS * solver.preparation.stiffness_scale(tet_body, weights, ratio)
     settings = obj.rs_elastic
-    K = solver.fem.stiffness_matrix(X, T, tet_youngs, settings.poisson_ratio)
-    masses = solver.fem.lumped_masses(X, T, settings.density)
+    K = reference_stiffness(X, T, painted_tet_youngs(ext, body, weights, ratio),
+                            settings.poisson_ratio)
+    masses = reference_masses(X, T, settings.density)
     pinned = (3 * body.pinned_nodes[:, None] + np.arange(3)).ravel()
     return K, masses, np.setdiff1d(np.arange(3 * len(X)), pinned)
 
@@ -73,7 +117,8 @@ def test_painted_frequencies_are_the_full_space_fem_of_the_same_tets(ext):
     print("painted frequencies [Hz]:", np.array2string(prepared, precision=5))
     print(f"against the full-space FEM: {error:.1e} (panel's float32 values {shown:.1e})")
     assert error < 1e-6 and shown < 1e-6
-    np.testing.assert_allclose(body.tet_youngs(YOUNGS), YOUNGS * body.stiffness_scale)
+    np.testing.assert_allclose(body.tet_youngs(YOUNGS),
+                               painted_tet_youngs(ext, body, weights, RATIO), rtol=1e-12)
     # Outside the group is weight 0: painting the tip's vertices too would give other modes.
     whole = np.where(vertices(obj)[:, 0] <= 4.0 + 1e-9, 1.0 - vertices(obj)[:, 0] / 5.0, 0.0)
     other = reference_frequencies(*full_space(ext, obj, body, whole, RATIO), 6)
