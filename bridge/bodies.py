@@ -8,10 +8,11 @@ Stage 4 (energy, StVK and Fung only): the energy cubature of the material's redu
 form), so it has no such stage and writes no file.
 
 Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
-key hashes the tet mesh *actually used* (its arrays) with the material and pins; the reduced key
-hashes the modes' arrays with the reduced settings; the energy key hashes the tets' and the
-modes' arrays (what the cubature is trained on) with the material kind, every material parameter
-it is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fung only) and the
+key hashes the tet mesh *actually used* (its arrays) with the material (a painted one's stiffness
+group weights and ratio too) and pins; the reduced key hashes the modes' arrays with the reduced
+settings; the energy key hashes the tets' and the modes' arrays and a painted body's per-tet
+stiffness (what the cubature is trained on) with the material kind, every material parameter it
+is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fung only) and the
 training settings. So stages of different runs can never mix. Each stage is looked up in memory,
 then in its cache file (`stage_cache`), and computed only if neither has it.
 
@@ -23,7 +24,7 @@ import functools
 import bpy
 import numpy as np
 
-from ..solver import cache, embed, fem, materials, preparation, proxy, tetmesh
+from ..solver import cache, embed, fem, preparation, proxy, tetmesh
 from ..solver.body import PreparedBody
 from . import armature, estimates, mesh_cache, scene, stage_cache, staleness
 from .jobs import Cancelled, Job
@@ -39,6 +40,10 @@ REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
 # Version of the pin rule (solver.embed.pin_surface); part of the modes key, so modes pinned
 # under another rule are rebuilt, not reused. Bump it when the rule changes.
 PIN_RULES = "surface pins 2: faces clamp by their tet-surface facets"
+
+# Version of the painted stiffness rule (solver.preparation.stiffness_scale); part of a painted
+# body's modes key. Bump it when the rule changes.
+STIFFNESS_RULES = "painted stiffness 1: geometric in the mean of the tet's carried node weights"
 
 
 # --- inputs, read on the main thread --------------------------------------------------------------
@@ -57,6 +62,8 @@ class BodyInputs:
     base_triangles: np.ndarray = None   # (t, 3) triangles of the base mesh (the pin rule reads them)
     pin_weights: np.ndarray = None      # (n,) float32 in [0, 1], None for a free body
     pins_hold_volume: bool = False      # rigged: the Follow Rig group holds the flesh it paints
+    stiffness_weights: np.ndarray = None   # (n,) float32 in [0, 1]; None: a uniform material
+    stiffness_ratio: float = 1.0        # Young's modulus at weight 0 over that at weight 1
     stored_tets: tuple = None      # (nodes, tets) kept in the .blend for tets_key, or None
     fingerprint: dict = None       # what Prepare read (see `staleness.fingerprint`)
     youngs: float = 0.0
@@ -89,8 +96,10 @@ class BodyInputs:
         """Key of the modes of the tet mesh whose arrays hash to tets_digest."""
         pins = (PIN_RULES, self.pin_weights, self.base_triangles, self.pins_hold_volume) \
             if self.pin_weights is not None else "free"
+        painted = () if self.stiffness_weights is None else (
+            (STIFFNESS_RULES, self.stiffness_weights, self.stiffness_ratio),)
         return cache.content_key("modes", tets_digest, pins, self.youngs, self.poisson,
-                                 self.density, self.num_modes)
+                                 self.density, self.num_modes, *painted)
 
     def reduced_key(self, modes_digest):
         return cache.content_key("reduced", REDUCED_RULES, modes_digest, self.basis_size,
@@ -103,9 +112,10 @@ class EnergyInputs:
     object_name: str
     cache_dirs: list
     kind: str                  # "STVK" or "FUNG"
-    youngs: float              # [Pa]
+    youngs: float              # [Pa] (at weight 1 of a stiffness group)
     poisson: float
     fung_stiffening: float     # dimensionless; only Fung reads it
+    material: object = None    # the prepared body's (``for_body``): a cubature is trained for it
 
     @functools.cached_property
     def parameters(self):
@@ -114,10 +124,10 @@ class EnergyInputs:
         stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
         return (self.youngs, self.poisson) + stiffening
 
-    @functools.cached_property
-    def material(self):
-        mu, lam = fem.lame_parameters(self.youngs, self.poisson)
-        return materials.make_material(self.kind, mu, lam, fung_stiffening=self.fung_stiffening)
+    def for_body(self, body):
+        """These inputs with the material of the PreparedBody (its painted stiffness, if any)."""
+        return dataclasses.replace(self, material=body.material(
+            self.kind, self.youngs, self.poisson, fung_stiffening=self.fung_stiffening))
 
     def key(self, parent):
         """Key of the cubature for the prepared body whose `energy_parent` is parent."""
@@ -182,6 +192,9 @@ def read_inputs(obj, depsgraph, with_material=True):
             raise ValueError(f"Density must be positive, got {settings.density:g} kg/m³")
     except ValueError as exc:
         raise InputError(str(exc)) from None
+    if settings.stiffness_group:
+        inputs.stiffness_weights = _stiffness_weights(obj, settings.stiffness_group)
+        inputs.stiffness_ratio = _stiffness_ratio(settings)
     if settings.pin_group:
         weights = _pin_weights(obj, settings.pin_group)
         if weights.all():
@@ -200,6 +213,31 @@ def read_inputs(obj, depsgraph, with_material=True):
     inputs.cubature_tolerance = settings.cubature_tolerance
     inputs.training_poses = settings.training_poses
     return inputs
+
+
+def _stiffness_weights(obj, group):
+    """(n,) float32 weights of the stiffness group in [0, 1] (0 outside it); InputError for a
+    group that does not exist or holds a weight that is not a number."""
+    weights = scene.stiffness_weights(obj, group)
+    if not np.isfinite(weights).all():
+        vertex = int(np.flatnonzero(~np.isfinite(weights))[0])
+        raise InputError(f"Stiffness group '{group}' has a weight that is not a number (vertex "
+                         f"{vertex}): paint it again")
+    return np.clip(weights, 0.0, 1.0)
+
+
+def _stiffness_ratio(settings):
+    """The Stiffness Ratio; InputError unless it is above 0 and keeps the softest or stiffest
+    part within Young's modulus's limit (not a number is refused with every setting, by
+    ``scene.check_settings``)."""
+    ratio = settings.stiffness_ratio
+    if not ratio > 0.0:
+        raise InputError(f"Stiffness ratio must be above 0, got {ratio:g}")
+    label, largest, unit = scene.MATERIAL_LIMITS["youngs_modulus"]
+    if settings.youngs_modulus * ratio > largest:
+        raise InputError(f"Stiffness ratio × {label} must be at most {largest:g} {unit}, got "
+                         f"{settings.youngs_modulus * ratio:g} {unit}")
+    return float(ratio)
 
 
 def _pin_weights(obj, group):
@@ -285,14 +323,26 @@ def surface_pins(inputs, tet_body):
                                     holds_volume=inputs.pins_hold_volume)
 
 
-def modes_stage(inputs, tet_body, job, tets_digest, pins):
+def stiffness_scale(inputs, tet_body):
+    """(E,) the painted stiffness of the tets (``preparation.stiffness_scale``), or None for a
+    uniform material. Cheap next to the modes (one sparse solve for the inner nodes), and a
+    function of the modes' key: computed again rather than cached."""
+    if inputs.stiffness_weights is None:
+        return None
+    return preparation.stiffness_scale(tet_body, inputs.stiffness_weights, inputs.stiffness_ratio)
+
+
+def modes_stage(inputs, tet_body, job, tets_digest, pins, tet_youngs=None):
     """Linear modes for the material and the pins (``surface_pins``; None for a free body):
-    from memory, the disk cache, or eigsh."""
+    from memory, the disk cache, or eigsh. tet_youngs: (E,) a painted body's per-tet Young's
+    modulus [Pa] (None: the uniform inputs.youngs)."""
+    youngs = inputs.youngs if tet_youngs is None else tet_youngs
+
     def compute():
         job.step(0.55, f"Computing {inputs.num_modes} linear modes")
         stage_cache.stats["modes"] += 1
         try:
-            return preparation.linear_modes(tet_body, inputs.youngs, inputs.poisson,
+            return preparation.linear_modes(tet_body, youngs, inputs.poisson,
                                             inputs.density, inputs.num_modes,
                                             None if pins is None else pins.nodes)
         except ValueError as exc:
@@ -325,12 +375,14 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.
 
 
 def energy_parent(body):
-    """Digest of what a body's energy cubature is trained on: its tets' and its modes' arrays."""
+    """Digest of what a body's energy cubature is trained on: its tets' and its modes' arrays,
+    and a painted body's per-tet stiffness."""
     tets_digest, modes_digest = body.digests
     if not (tets_digest and modes_digest):
         tets_digest = stage_cache.digest("tets", body.tet_body)
         modes_digest = stage_cache.digest("modes", body.linear_modes)
-    return cache.content_key("energy parent", tets_digest, modes_digest)
+    painted = () if body.stiffness_scale is None else (("painted", body.stiffness_scale),)
+    return cache.content_key("energy parent", tets_digest, modes_digest, *painted)
 
 
 def _fits_body(body):
@@ -355,6 +407,7 @@ def energy_stage(energy, body, job, start=0.0, end=1.0):
     from `start` to `end`, and a cancel stops the training)."""
     parent = energy_parent(body)
     title = f"{energy.label} energy cubature"
+    energy = energy.for_body(body)
 
     def compute():
         job.step(start, f"{title}: RS coordinates of the modes")
@@ -373,13 +426,16 @@ def prepare(inputs, job):
     tet_body = tet_stage(inputs, job)
     tets_digest = stage_cache.digest("tets", tet_body)
     pins = surface_pins(inputs, tet_body)
-    linear_modes = modes_stage(inputs, tet_body, job, tets_digest, pins)
+    scale = stiffness_scale(inputs, tet_body)
+    linear_modes = modes_stage(inputs, tet_body, job, tets_digest, pins,
+                               None if scale is None else inputs.youngs * scale)
     modes_digest = stage_cache.digest("modes", linear_modes)
     deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest,
                              end=0.99 if inputs.energy is None else 0.9)
     keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
     body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest),
-                        pinned_embedding=None if pins is None else pins.embedding)
+                        pinned_embedding=None if pins is None else pins.embedding,
+                        stiffness_scale=scale)
     if inputs.energy is not None:
         body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99)
         body.energy_key = inputs.energy.key(energy_parent(body))

@@ -98,6 +98,16 @@ class RSElasticSettings(bpy.types.PropertyGroup):
     density: FloatProperty(
         name="Density", default=1100.0, soft_min=1.0, soft_max=20000.0, precision=1,
         description="Mass density in kg/m³ (Blender units are metres)")
+    stiffness_group: StringProperty(
+        name="Stiffness Group",
+        description="Vertex group that paints the stiffness: weight 1 has the Young's modulus "
+                    "above, weight 0 (and every vertex outside the group) Stiffness Ratio times "
+                    "it, in between geometrically. Paint the stiff part (or use a ratio above 1 "
+                    "to make the painted part the soft one); empty for a uniform material")
+    stiffness_ratio: FloatProperty(
+        name="Stiffness Ratio", default=0.1, soft_min=1e-4, soft_max=10.0, precision=4,
+        description="Young's modulus at weight 0 of the Stiffness Group over that at weight 1 "
+                    "(must be above 0; 1: uniform)")
     pin_group: StringProperty(
         name="Pin Group",
         description="Vertex group whose vertices are held fixed; empty for a free body")

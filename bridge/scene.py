@@ -277,6 +277,13 @@ def pin_weights(obj, group_name):
     return group_weights(obj, group_name, label="Pin group").astype(np.float32)
 
 
+def stiffness_weights(obj, group_name):
+    """(n,) float32 weights of the stiffness group (0 outside it), hashed like the pin weights
+    into the modes key and the staleness fingerprint; InputError "Stiffness group '<name>' does
+    not exist on '<object>'" when there is no such group."""
+    return group_weights(obj, group_name, label="Stiffness group").astype(np.float32)
+
+
 def group_weight_matrix(obj, group_indices):
     """(n, k) float64 weights of the vertex groups with these indices (k,) over the mesh's
     vertices (0 outside a group). Blender has no bulk accessor for group weights, so this

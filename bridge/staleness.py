@@ -1,6 +1,6 @@
 """Whether a prepared body still matches its object: Prepare records a fingerprint of what it read
-(mesh, modifiers, pins, settings) in `obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares
-it with the object now (main thread).
+(mesh, modifiers, pins, a painted stiffness, settings) in `obj.rs_elastic["prepared_inputs"]`;
+`stale_reason` compares it with the object now (main thread).
 
 The material model is not part of it: Simulate trains (or loads) the energy cubature of whichever
 model is set (`bodies.energy_stage`).
@@ -12,7 +12,7 @@ import numpy as np
 
 from ..solver import cache
 from . import mesh_cache
-from .scene import InputError, pin_weights
+from .scene import InputError, pin_weights, stiffness_weights
 from .stage_cache import PREPARED_INPUTS
 
 # Properties that do not change what a modifier makes: its name (the stack is read in order),
@@ -122,7 +122,8 @@ def _modifier_stack(obj):
 
 
 def _geometry_fingerprint(obj):
-    """The costly part of the fingerprint: vertices, faces, modifiers, pin weights (hashes)."""
+    """The costly part of the fingerprint: vertices, faces, modifiers, pin and stiffness
+    weights (hashes)."""
     mesh = obj.data
     co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
     mesh.vertices.foreach_get("co", co)
@@ -134,38 +135,54 @@ def _geometry_fingerprint(obj):
         mesh.loops.foreach_get("vertex_index", corners)
     sizes = np.empty(len(mesh.polygons), dtype=np.int32)
     mesh.polygons.foreach_get("loop_start", sizes)
-    group = obj.rs_elastic.pin_group
-    if not group:
-        pins = "free"
-    elif obj.vertex_groups.get(group) is None:
-        pins = "missing"
-    else:
-        pins = cache.content_key(pin_weights(obj, group))
     return {"vertex count": str(len(mesh.vertices)), "faces": cache.content_key(corners, sizes),
             "vertices": cache.content_key(co), "modifiers": cache.content_key(_modifier_stack(obj)),
-            "pin group": pins}
+            "pin group": _group_fingerprint(obj, obj.rs_elastic.pin_group, pin_weights, "free"),
+            **_stiffness_fingerprint(obj)}
+
+
+def _group_fingerprint(obj, group, read_weights, unset):
+    """``unset`` without a group, "missing" for one the object lacks, else its weights' hash."""
+    if not group:
+        return unset
+    if obj.vertex_groups.get(group) is None:
+        return "missing"
+    return cache.content_key(read_weights(obj, group))
+
+
+def _stiffness_fingerprint(obj):
+    """The stiffness group's weights; no component at all for a uniform material, so a body
+    prepared before painted stiffness existed reads as it did (and the ratio, which only a
+    painted body reads, is in ``_settings_fingerprint`` on the same terms)."""
+    group = obj.rs_elastic.stiffness_group
+    if not group:
+        return {}
+    return {"stiffness group": _group_fingerprint(obj, group, stiffness_weights, "")}
 
 
 def _settings_fingerprint(settings):
+    painted = ({"stiffness ratio": repr(settings.stiffness_ratio)} if settings.stiffness_group
+               else {})
     return {"tet mesh settings": repr((settings.edge_length, settings.envelope,
                                        settings.proxy_triangles)),
             "material": repr((settings.youngs_modulus, settings.poisson_ratio, settings.density)),
+            **painted,
             "number of modes": repr(settings.num_modes),
             "reduced RS settings": repr((settings.basis_size, settings.cubature_tets,
                                          settings.cubature_tolerance, settings.training_poses))}
 
 
-_GEOMETRY = {}   # object pointer -> (pin group name, its index, geometry fingerprint), for draw
+_GEOMETRY = {}   # object pointer -> (groups' names and indices..., geometry fingerprint), for draw
 
 
 def fingerprint(obj, cached=False):
     """dict component -> text/hash of everything Prepare reads. `cached` reuses the geometry
     part until a depsgraph update of the object or its mesh (for the panel, which runs in draw)."""
     settings = obj.rs_elastic
-    group = obj.vertex_groups.get(settings.pin_group) if settings.pin_group else None
+    groups = [(name, getattr(obj.vertex_groups.get(name) if name else None, "index", None))
+              for name in (settings.pin_group, settings.stiffness_group)]
     mesh = obj.data
-    tag = (settings.pin_group, None if group is None else group.index, len(mesh.vertices),
-           len(mesh.polygons), len(obj.modifiers))
+    tag = (groups, len(mesh.vertices), len(mesh.polygons), len(obj.modifiers))
     entry = _GEOMETRY.get(obj.as_pointer()) if cached else None
     if entry is None or entry[0] != tag:
         entry = _GEOMETRY[obj.as_pointer()] = (tag, _geometry_fingerprint(obj))
@@ -185,14 +202,20 @@ def forget_fingerprints(depsgraph_updates):
             return
 
 
+_PAINTED = ("stiffness group", "stiffness ratio")   # components only a painted body has
+
+
 def _what_changed(obj, before, now):
-    """What to tell the user about the first component that differs, or None."""
-    for name, value in now.items():
+    """What to tell the user about the first component that differs (one now has, or a painted
+    stiffness's that only Prepare had: the group was cleared since), or None."""
+    for name in [*now, *(name for name in _PAINTED if name in before and name not in now)]:
+        value = now.get(name)
         if before.get(name) == value:
             continue
-        if name == "pin group" and value == "missing":
-            return (f"pin group '{obj.rs_elastic.pin_group}' no longer exists (renamed or deleted "
-                    "since Prepare Body): set Pin Group and prepare again")
+        if name in ("pin group", "stiffness group") and value == "missing":
+            group = getattr(obj.rs_elastic, name.replace(" ", "_"))
+            return (f"{name} '{group}' no longer exists (renamed or deleted since Prepare Body): "
+                    f"set {name.title()} and prepare again")
         if name == "vertex count":
             what = f"the vertex count changed since Prepare Body ({before.get(name)} → {value})"
         elif name == "vertices":

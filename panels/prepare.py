@@ -29,6 +29,8 @@ class RS_ELASTIC_PT_material(RSElasticPanel, bpy.types.Panel):
         layout.menu("RS_ELASTIC_MT_material_presets", icon='PRESET')
         layout.use_property_split = True
         layout.prop(settings, "youngs_modulus", text="Young's Modulus (Pa)")
+        layout.prop_search(settings, "stiffness_group", obj, "vertex_groups")
+        layout.prop(settings, "stiffness_ratio")
         layout.prop(settings, "poisson_ratio")
         layout.prop(settings, "density", text="Density (kg/m³)")
         if armature.is_rigged(obj):       # on a rig the pins are what follows the bones

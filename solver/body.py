@@ -71,6 +71,23 @@ class PreparedBody:
     # (n, N) csr: the embedding for displacements, with the pinned vertices held by pinned
     # nodes (embed.SurfacePins.embedding); None: the tet body's own (a free body)
     pinned_embedding: sp.csr_matrix = None
+    # (E,) each tet's Young's modulus over the body's own (its value at weight 1 of a stiffness
+    # group, ``preparation.stiffness_scale``); None: a uniform material. The modes were computed
+    # with it, and every material made of the body (``material``) carries it.
+    stiffness_scale: np.ndarray = None
+
+    # --- the material, as every consumer makes it ---------------------------------------------
+    def tet_youngs(self, youngs):
+        """Young's modulus [Pa] of each tet for the body's Young's modulus ``youngs`` [Pa]: the
+        number itself for a uniform body, (E,) for a painted one."""
+        return youngs if self.stiffness_scale is None else youngs * self.stiffness_scale
+
+    def material(self, kind, youngs, poisson, fung_stiffening=10.0):
+        """The ``materials`` material ``kind`` (LINEAR, STVK, FUNG) of the body for its Young's
+        modulus [Pa] and Poisson's ratio: per-tet Lame parameters over all its tets when it is
+        painted. ValueError for an unstable material."""
+        mu, lam = fem.lame_parameters(self.tet_youngs(youngs), poisson)
+        return materials.make_material(kind, mu, lam, fung_stiffening=fung_stiffening)
 
     @property
     def displacement_embedding(self):

@@ -81,16 +81,39 @@ def scalar_gradient_operator(X, T):
 def lame_parameters(youngs, poisson):
     """Lame parameters (mu, lam) in Pa from Young's modulus [Pa] and Poisson's ratio [-].
 
-    Raises ValueError for E <= 0 or nu outside (-1, 0.5), where the material is not stable.
+    youngs: a number, or (E,) one per tet (a painted body, ``painted_youngs``): the result is
+    then two (E,) arrays. Raises ValueError for any E <= 0 or not finite, or nu outside
+    (-1, 0.5), where the material is not stable.
     """
-    youngs, poisson = float(youngs), float(poisson)
-    if not np.isfinite(youngs) or youngs <= 0.0:
-        raise ValueError(f"Young's modulus must be positive (got {youngs:g} Pa)")
+    poisson = float(poisson)
+    values = np.asarray(youngs, dtype=np.float64)
+    if not np.all(np.isfinite(values)) or not np.all(values > 0.0):
+        bad = values if values.ndim == 0 else values[~(np.isfinite(values) & (values > 0.0))][0]
+        raise ValueError(f"Young's modulus must be positive (got {float(bad):g} Pa)")
     if not np.isfinite(poisson) or not -1.0 < poisson < 0.5:
         raise ValueError(f"Poisson's ratio must lie strictly between -1 and 0.5 (got {poisson:g})")
+    youngs = float(values) if values.ndim == 0 else values
     mu = youngs / (2.0 * (1.0 + poisson))
     lam = youngs * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
     return mu, lam
+
+
+def painted_youngs(youngs, ratio, weights):
+    """(E,) Young's modulus [Pa] of tets painted with weights (E,) in [0, 1] (a stiffness group):
+    E(w) = youngs * ratio ** (1 - w), so weight 1 is ``youngs`` and weight 0 is ratio * youngs
+    (ratio > 0, finite; above 1 the painted part is the soft one).
+
+    Geometric, not linear, interpolation: equal steps of paint give equal factors of stiffness
+    (and of frequency, which goes as sqrt(E)), so a uniform gradient of paint along a tail softens
+    it by the same factor per unit length, and a weight of 0.5 is the geometric mean. Linear
+    interpolation of a 1:1000 range would put everything below youngs / 2 into the last tenth of
+    the weights.
+    """
+    ratio = float(ratio)
+    if not (np.isfinite(ratio) and ratio > 0.0):
+        raise ValueError(f"the stiffness ratio must be a positive number (got {ratio:g})")
+    weights = np.clip(np.asarray(weights, dtype=np.float64), 0.0, 1.0)
+    return float(youngs) * ratio ** (1.0 - weights)
 
 
 def _sym9():
@@ -100,20 +123,38 @@ def _sym9():
 
 
 def elasticity_tensor(mu, lam):
-    """(9, 9) C = 2 mu Sym9 + lam vec(I) vec(I)^T, so psi(grad u) = 1/2 m^T C m, m = vec(grad u)."""
-    return 2.0 * mu * _sym9() + lam * np.outer(VEC_I, VEC_I)
+    """C = 2 mu Sym9 + lam vec(I) vec(I)^T, so psi(grad u) = 1/2 m^T C m, m = vec(grad u): (9, 9)
+    for numbers mu, lam [Pa], (E, 9, 9) for per-tet (E,) ones."""
+    mu, lam = np.asarray(mu, dtype=np.float64), np.asarray(lam, dtype=np.float64)
+    return (2.0 * mu[..., None, None] * _sym9()
+            + lam[..., None, None] * np.outer(VEC_I, VEC_I))
+
+
+def _tet_weights(volumes, C):
+    """csr (9E, 9E) block diagonal of V_e C_e: volumes (E,) [m^3], C (9, 9) or (E, 9, 9) [Pa].
+
+    The entries are those of ``sp.kron(sp.diags(volumes), sp.csr_matrix(C))`` in its own order
+    (each block's nonzero pattern, row-major, each entry the single product V_e C_ij), so a
+    uniform material gives the same K bit for bit as a kron of one tensor does."""
+    C = np.broadcast_to(C, (len(volumes), 9, 9))
+    rows, cols = np.nonzero(np.any(C != 0.0, axis=0))        # row-major, as csr_matrix(C) keeps
+    offsets = 9 * np.arange(len(volumes))[:, None]
+    data = volumes[:, None] * C[:, rows, cols]
+    return sp.coo_matrix((data.ravel(), ((offsets + rows).ravel(), (offsets + cols).ravel())),
+                         shape=(9 * len(volumes),) * 2).tocsr()
 
 
 def stiffness_matrix(X, T, youngs, poisson):
-    """Linear-elastic stiffness K = G^T (diag(V) kron C) G, csr (3N, 3N) in N/m; symmetric PSD.
+    """Linear-elastic stiffness K = sum_e V_e G_e^T C_e G_e, csr (3N, 3N) in N/m; symmetric PSD.
 
+    youngs: Young's modulus [Pa], one number or (E,) per tet (a painted body); poisson one
+    number. C_e = ``elasticity_tensor`` of the tet's Lame parameters (``lame_parameters``).
     Either tet orientation gives the same K (unsigned volumes are the quadrature weights).
     """
     mu, lam = lame_parameters(youngs, poisson)
     G = gradient_operator(X, T)
     volumes = np.abs(tet_volumes(X, T))  # G does not depend on orientation, so neither does K
-    weights = sp.kron(sp.diags(volumes), sp.csr_matrix(elasticity_tensor(mu, lam)),
-                      format="csr")
+    weights = _tet_weights(volumes, elasticity_tensor(mu, lam))
     K = (G.T @ weights @ G).tocsr()
     # Round-off makes K very slightly asymmetric; symmetrise so eigsh / Cholesky see exact symmetry.
     return ((K + K.T) * 0.5).tocsr()

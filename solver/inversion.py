@@ -144,7 +144,8 @@ def barrier_function(J, j_hat=J_HAT):
 
 
 def bulk_modulus(material):
-    """Small-strain bulk modulus K = lam + 2 mu / 3 [Pa] of a ``materials`` material."""
+    """Small-strain bulk modulus K = lam + 2 mu / 3 [Pa] of a ``materials`` material: a number,
+    or (E,) per tet for a painted body (each tet's barrier then scales with its own material)."""
     mu, lam = material.small_strain_lame
     return lam + 2.0 * mu / 3.0
 
@@ -153,21 +154,20 @@ class VolumeBarrier:
     """V_b(s) = kappa sum_e V_e b(det(I + U_e s)) [J] over all tets (module docstring).
 
     strain_modes U (E, 6, m): strain per unit s of every tet (rows 3:9 of ``rs.linear_rs``);
-    volumes (E,) [m^3]; stiffness kappa [Pa]; j_hat in (0, 1): the volume ratio below which
-    it acts. Build with ``for_material`` to get kappa = BARRIER_SCALE * the material's bulk
-    modulus.
+    volumes (E,) [m^3]; stiffness kappa [Pa], a number or (E,) per tet; j_hat in (0, 1): the
+    volume ratio below which it acts. Build with ``for_material`` to get kappa = BARRIER_SCALE *
+    the material's bulk modulus.
     """
 
     def __init__(self, strain_modes, volumes, stiffness, j_hat=J_HAT):
         if not 0.0 < j_hat < 1.0:
             raise ValueError(f"j_hat must lie in (0, 1), got {j_hat!r}")
-        if not stiffness > 0.0:
-            raise ValueError(f"barrier stiffness must be positive, got {stiffness!r}")
+        stiffness = _positive_stiffness(stiffness)
         self.strain_modes = np.ascontiguousarray(strain_modes, dtype=np.float64)
         self.num_coords = self.strain_modes.shape[2]
         self._flat = self.strain_modes.reshape(-1, self.num_coords)              # (6E, m)
-        self.weights = float(stiffness) * np.abs(np.asarray(volumes, dtype=np.float64))
-        self.stiffness, self.j_hat = float(stiffness), float(j_hat)
+        self.weights = stiffness * np.abs(np.asarray(volumes, dtype=np.float64))
+        self.stiffness, self.j_hat = stiffness, float(j_hat)
 
     @classmethod
     def for_material(cls, material, modal_rs, volumes, j_hat=J_HAT):
@@ -210,6 +210,14 @@ class VolumeBarrier:
         HU = (w[:, None, None] * H) @ U
         hess = U.reshape(-1, m).T @ HU.reshape(-1, m)
         return value, grad, 0.5 * (hess + hess.T)
+
+
+def _positive_stiffness(stiffness):
+    """kappa as a float, or a float64 (E,) array per tet; ValueError unless every value is > 0."""
+    values = np.asarray(stiffness, dtype=np.float64)
+    if not np.all(values > 0.0):
+        raise ValueError(f"barrier stiffness must be positive, got {stiffness!r}")
+    return float(values) if values.ndim == 0 else values
 
 
 def _clamp_psd(H):
@@ -294,10 +302,10 @@ class ReconstructionBarrier:
     adds it to the watch and retakes the step in halves). Nothing is watched until then.
 
     deformer: ``reduced.ReducedRS`` or ``LinearDeformer`` with its basis B (3N, rB);
-    rest_positions X (N, 3) [m]; tets (E, 4); stiffness kappa [Pa]. Derivatives: the gradient
-    is exact, sum_e w_e b'(J_e) dq/ds^T B_e^T dJ_e/dx_e; the Hessian is the Gauss-Newton part
-    sum_e w_e b''(J_e) g_e g_e^T (g_e = dJ_e/ds; b'' > 0 below j_hat, so it is PSD), without
-    b' d^2J/ds^2 (indefinite; the line search makes up for it).
+    rest_positions X (N, 3) [m]; tets (E, 4); stiffness kappa [Pa] (a number or (E,)).
+    Derivatives: the gradient is exact, sum_e w_e b'(J_e) dq/ds^T B_e^T dJ_e/dx_e; the Hessian
+    is the Gauss-Newton part sum_e w_e b''(J_e) g_e g_e^T (g_e = dJ_e/ds; b'' > 0 below j_hat,
+    so it is PSD), without b' d^2J/ds^2 (indefinite; the line search makes up for it).
     """
 
     def __init__(self, deformer, rest_positions, tets, stiffness, j_hat=RECONSTRUCTION_J_HAT):
@@ -306,8 +314,9 @@ class ReconstructionBarrier:
         self.deformer = deformer
         self.volumes = DeformedVolumes(rest_positions, tets, deformer.basis)
         self.num_coords = deformer.num_coords
-        self.weights = float(stiffness) * np.abs(self.volumes.rest_determinants) / 6.0
-        self.stiffness, self.j_hat = float(stiffness), float(j_hat)
+        stiffness = _positive_stiffness(stiffness)
+        self.weights = stiffness * np.abs(self.volumes.rest_determinants) / 6.0
+        self.stiffness, self.j_hat = stiffness, float(j_hat)
         self._node_basis = self.volumes.basis.reshape(len(self.volumes.rest), 3, -1)
         self.watched = np.empty(0, dtype=np.int64)
 

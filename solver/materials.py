@@ -15,6 +15,11 @@ their gradients d psi / d eps (E, 6) [Pa] and Hessians (E, 6, 6) [Pa]:
   mu1, lam1, c in Pa, mu2, lam2 dimensionless (they scale the exponent). Its small-strain
   stiffness is that of Linear(mu1 + c mu2, lam1 + c lam2); it stiffens exponentially.
 
+Every parameter is a number, or one value per tet (a painted body, ``fem.painted_youngs``): an
+(E,) array whose rows match the rows of the strains ``evaluate`` is given. ``at(tets)`` is the
+same material on a subset (or repetition) of the tets; a ``ReducedPotential`` keeps the body's
+material (every tet's parameters, which the volume barriers read) and evaluates its own tets'.
+
 Reduced potential (``ReducedPotential``): with modal coordinates s (m,) the strain is linear,
 ``eps_e(s) = U_e s`` (U_e the strain rows (6, m) of the modal RS coordinates ``rs.linear_rs``), so
 
@@ -26,7 +31,7 @@ w_e >= 0, ``train_energy_cubature``). Everything per evaluation is (C, 6, m) arr
 ``Linear`` the Hessian is constant and precomputed, so an evaluation is one m x m product.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -46,14 +51,38 @@ def strain_matrices(strain):
     return strain[..., _FULL].reshape(strain.shape[:-1] + (3, 3))
 
 
+def _per_tet(value, trailing):
+    """A parameter ready to scale per-tet arrays with ``trailing`` more axes: a number as it is,
+    an (E,) array as (E, 1, ..., 1)."""
+    return value if np.ndim(value) == 0 else np.reshape(value, (-1,) + (1,) * trailing)
+
+
 def _linear_tensor(mu, lam):
-    """(6, 6) C6 with psi = 1/2 e^T C6 e for mu |eps|^2 + lam/2 tr(eps)^2."""
-    return 2.0 * mu * np.diag(_MULT) + lam * np.outer(_TRACE, _TRACE)
+    """C6 with psi = 1/2 e^T C6 e for mu |eps|^2 + lam/2 tr(eps)^2: (6, 6), or (E, 6, 6) for
+    per-tet (E,) parameters."""
+    return 2.0 * _per_tet(mu, 2) * np.diag(_MULT) + _per_tet(lam, 2) * np.outer(_TRACE, _TRACE)
+
+
+class PerTetParameters:
+    """Parameters that are numbers or (E,) arrays, one value per tet (module docstring)."""
+
+    @property
+    def per_tet(self):
+        """True when any parameter is an array (a painted body)."""
+        return any(np.ndim(getattr(self, f.name)) for f in fields(self))
+
+    def at(self, tets):
+        """The material of the tets ``tets`` (k,): each per-tet array indexed by them (numbers
+        stay numbers). ``tets`` may repeat, e.g. the same tets for several poses."""
+        if not self.per_tet:
+            return self
+        return replace(self, **{f.name: np.asarray(getattr(self, f.name))[tets]
+                                for f in fields(self) if np.ndim(getattr(self, f.name))})
 
 
 @dataclass(frozen=True)
-class Linear:
-    """psi = mu |eps|^2_F + lam/2 tr(eps)^2; mu, lam Lame parameters [Pa]."""
+class Linear(PerTetParameters):
+    """psi = mu |eps|^2_F + lam/2 tr(eps)^2; mu, lam Lame parameters [Pa] (numbers or (E,))."""
 
     mu: float
     lam: float
@@ -67,7 +96,7 @@ class Linear:
         """psi (E,) [Pa], d psi/d e (E, 6) and d2 psi/d e2 (E, 6, 6) (None below ``order``)."""
         strain = np.asarray(strain, dtype=np.float64)
         C = _linear_tensor(self.mu, self.lam)
-        grad = strain @ C
+        grad = strain @ C if C.ndim == 2 else np.einsum("ek,ekl->el", strain, C)
         psi = 0.5 * np.einsum("ek,ek->e", grad, strain)
         hess = np.broadcast_to(C, strain.shape[:-1] + (6, 6)) if order >= 2 else None
         return psi, (grad if order >= 1 else None), hess
@@ -117,23 +146,25 @@ class _GreenParts:
             self.curvature = (self.green @ _SYMMETRIC_PRODUCTS).reshape(n, 6, 6)
 
     def stvk(self, mu, lam):
-        """(psi, grad, hess) of mu tr(E_G^2) + lam/2 tr(E_G)^2 up to ``order``."""
+        """(psi, grad, hess) of mu tr(E_G^2) + lam/2 tr(E_G)^2 up to ``order`` (mu, lam numbers
+        or (E,))."""
         psi = mu * np.einsum("ei,ei->e", self.green, self.green) + 0.5 * lam * self.trace ** 2
         if self.order < 1:
             return psi, None, None
-        grad = (2.0 * mu * np.einsum("eki,ei->ek", self.d_green, self.green)
-                + lam * self.trace[:, None] * self.stretch)
+        grad = (2.0 * _per_tet(mu, 1) * np.einsum("eki,ei->ek", self.d_green, self.green)
+                + _per_tet(lam, 1) * self.trace[:, None] * self.stretch)
         if self.order < 2:
             return psi, grad, None
-        hess = (2.0 * mu * (self.gram + self.curvature)
-                + lam * (self.stretch[:, :, None] * self.stretch[:, None, :]
-                         + self.trace[:, None, None] * _BASIS_GRAM))
+        hess = (2.0 * _per_tet(mu, 2) * (self.gram + self.curvature)
+                + _per_tet(lam, 2) * (self.stretch[:, :, None] * self.stretch[:, None, :]
+                                      + self.trace[:, None, None] * _BASIS_GRAM))
         return psi, grad, hess
 
 
 @dataclass(frozen=True)
-class StVK:
-    """St Venant-Kirchhoff on the Cauchy strain: E_G = eps + eps^2/2, Lame mu, lam [Pa]."""
+class StVK(PerTetParameters):
+    """St Venant-Kirchhoff on the Cauchy strain: E_G = eps + eps^2/2, Lame mu, lam [Pa]
+    (numbers or (E,))."""
 
     mu: float
     lam: float
@@ -148,11 +179,11 @@ class StVK:
 
 
 @dataclass(frozen=True)
-class Fung:
+class Fung(PerTetParameters):
     """psi_StVK(mu1, lam1) + c (exp(psi_StVK(mu2, lam2)) - 1).
 
-    mu1, lam1, c in Pa; mu2, lam2 dimensionless. Large strains may overflow the exponential
-    to inf: the integrator's line search rejects such trial points.
+    mu1, lam1, c in Pa; mu2, lam2 dimensionless; each a number or (E,). Large strains may
+    overflow the exponential to inf: the integrator's line search rejects such trial points.
     """
 
     mu1: float
@@ -185,6 +216,11 @@ class Fung:
 MATERIALS = ("LINEAR", "STVK", "FUNG")
 
 
+def _parameter(value):
+    """A number as a float, per-tet values as a float64 array."""
+    return float(value) if np.ndim(value) == 0 else np.asarray(value, dtype=np.float64)
+
+
 def make_material(kind, mu, lam, fung_stiffening=10.0):
     """Material ``kind`` (one of MATERIALS) whose small-strain Lame parameters are (mu, lam) [Pa].
 
@@ -193,10 +229,10 @@ def make_material(kind, mu, lam, fung_stiffening=10.0):
     (dimensionless) and u = mu + lam/2, mu1 = mu/2, lam1 = lam/2, mu2 = k mu/u, lam2 = k lam/u,
     c = u/(2k). A uniaxial Green strain E_G then gives the exponent k E_G^2 whatever Poisson's
     ratio, so the exponential takes over around E_G = 1/sqrt(k) (k = 10: about 30 %); larger k
-    stiffens sooner.
+    stiffens sooner. mu, lam may be (E,) per tet (a painted body): so are the parameters then.
     """
     kind = str(kind).upper()
-    mu, lam = float(mu), float(lam)
+    mu, lam = _parameter(mu), _parameter(lam)
     if kind == "LINEAR":
         return Linear(mu, lam)
     if kind == "STVK":
@@ -231,10 +267,11 @@ class PotentialAccessors:
 class ReducedPotential(PotentialAccessors):
     """V(s) = sum_c weights_c psi(U_c s): the elastic energy [J] of modal coordinates s (m,).
 
-    material: ``Linear``, ``StVK`` or ``Fung``; strain_modes U (C, 6, m): strain per unit s at
-    each quadrature tet (rows 3:9 of ``rs.linear_rs``); weights (C,) [m^3]: tet volume times
-    cubature weight (1 for the exact all-tet sum). Use ``exact`` or ``cubature`` to build one.
-    ``tets`` (C,) records which tets these are (None: all, in order).
+    material: ``Linear``, ``StVK`` or ``Fung`` of the whole body (per-tet parameters over all
+    its E tets, or numbers); strain_modes U (C, 6, m): strain per unit s at each quadrature tet
+    (rows 3:9 of ``rs.linear_rs``); weights (C,) [m^3]: tet volume times cubature weight (1 for
+    the exact all-tet sum). Use ``exact`` or ``cubature`` to build one. ``tets`` (C,) records
+    which tets these are (None: all, in order); their parameters are ``material.at(tets)``.
 
     For ``Linear`` the (constant) Hessian sum_c w_c U_c^T C6 U_c is precomputed at construction,
     so evaluation costs one m x m product; ``rest_hessian`` is the Hessian at s = 0 for every
@@ -242,15 +279,18 @@ class ReducedPotential(PotentialAccessors):
     """
 
     def __init__(self, material, strain_modes, weights, tets=None):
-        self.material = material
+        self.material = material               # the body's: the barriers read every tet's
         self.strain_modes = np.ascontiguousarray(strain_modes, dtype=np.float64)
         self.weights = np.asarray(weights, dtype=np.float64).reshape(-1)
         self.tets = None if tets is None else np.asarray(tets, dtype=np.int64)
+        self._material = material if self.tets is None else material.at(self.tets)  # (C,) rows
         self.num_coords = self.strain_modes.shape[2]
         self._flat = self.strain_modes.reshape(-1, self.num_coords)            # (6C, m)
         self._quadratic = None
         if isinstance(material, Linear):
-            self._quadratic = self._hessian_sum(material.evaluate(np.zeros((1, 6)))[2][0])
+            rows = len(self.weights) if material.per_tet else 1
+            rest = self._material.evaluate(np.zeros((rows, 6)))[2]
+            self._quadratic = self._hessian_sum(rest if material.per_tet else rest[0])
         self.rest_hessian = (self._quadratic if self._quadratic is not None
                              else self.evaluate(np.zeros(self.num_coords))[2])
 
@@ -307,7 +347,7 @@ class ReducedPotential(PotentialAccessors):
             grad = self._quadratic @ s
             return 0.5 * float(grad @ s), (grad if order >= 1 else None), (
                 self._quadratic if order >= 2 else None)
-        psi, dpsi, d2psi = self.material.evaluate(self.strains(s), order)
+        psi, dpsi, d2psi = self._material.evaluate(self.strains(s), order)
         energy = float(self.weights @ psi)
         if order < 1:
             return energy, None, None
@@ -383,7 +423,7 @@ def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets
     strain_modes = modal_rs[:, 3:, :]
 
     def columns(tets):
-        return _tet_columns(material, strain_modes[tets], volumes[tets], Z, scale)
+        return _tet_columns(material, tets, strain_modes[tets], volumes[tets], Z, scale)
 
     if target.size * len(volumes) <= DENSE_COLUMNS:       # small: every column once, up front
         columns = columns(np.arange(len(volumes)))
@@ -400,11 +440,12 @@ def _pose_row(potential, s):
     return np.append(grad, energy)
 
 
-def _tet_columns(material, strain_modes, volumes, Z, scale):
-    """(F (m + 1), k) per-tet [V_e U_e^T dpsi, V_e psi] at poses Z (F, m), divided by scale."""
+def _tet_columns(material, tets, strain_modes, volumes, Z, scale):
+    """(F (m + 1), k) per-tet [V_e U_e^T dpsi, V_e psi] of the tets (k,) at poses Z (F, m),
+    divided by scale; material is the body's (its per-tet parameters repeat for every pose)."""
     k, _, m = strain_modes.shape
     strains = np.einsum("kim,fm->fki", strain_modes, Z)                      # (F, k, 6)
-    psi, dpsi, _ = material.evaluate(strains.reshape(-1, 6), 1)
+    psi, dpsi, _ = material.at(np.tile(tets, len(Z))).evaluate(strains.reshape(-1, 6), 1)
     forces = np.einsum("fki,kim->fkm", dpsi.reshape(len(Z), k, 6), strain_modes)
     cols = np.concatenate([forces, psi.reshape(len(Z), k, 1)], axis=2) * volumes[None, :, None]
     cols /= scale[:, None, :]

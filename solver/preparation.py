@@ -4,7 +4,8 @@
    ``proxy``) and its tet mesh (``tetmesh``), with the render mesh embedded (``embed``).
 2. ``surface_pins``: the pinned nodes and the embedding that holds pinned vertices
    (``embed.pin_surface``).
-3. ``linear_modes``: stiffness, lumped masses and the modes for the material and pins.
+3. ``linear_modes``: stiffness, lumped masses and the modes for the material and pins; a
+   painted material's per-tet Young's modulus comes from ``stiffness_scale``.
 4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``).
 5. ``energy_potential``: the energy cubature of a StVK or Fung material (``materials``).
 
@@ -80,9 +81,28 @@ def surface_pins(tet_body, base_vertices, base_triangles, pin_weights, envelope,
                              node_weights=carried)
 
 
+def tet_weights(tet_body, vertex_weights):
+    """(E,) weight of each tet in [0, 1] from the render vertices' weights (n,) of a vertex
+    group: carried to the tet nodes through the embedding and harmonically into the volume
+    (``rig.node_values``, as a rig's Follow Rig weights are), and each tet's the mean of its
+    four nodes'."""
+    X, T = tet_body.nodes, tet_body.tets
+    nodes = rig.node_values(tet_body.embedding, vertex_weights, X, T)[:, 0]
+    return np.clip(nodes[T].mean(axis=1), 0.0, 1.0)
+
+
+def stiffness_scale(tet_body, vertex_weights, ratio):
+    """(E,) each tet's Young's modulus over the body's (``PreparedBody.stiffness_scale``) for a
+    stiffness group painted with vertex_weights (n,) (vertices outside it 0) and ``ratio``, the
+    Young's modulus at weight 0 over that at weight 1: ``fem.painted_youngs`` of ``tet_weights``.
+    ValueError for a ratio that is not a positive number."""
+    return fem.painted_youngs(1.0, ratio, tet_weights(tet_body, vertex_weights))
+
+
 def linear_modes(tet_body, youngs, poisson, density, count, pinned=None):
-    """``modes.LinearModes``: ``count`` modes of the tet body for Young's modulus [Pa],
-    Poisson's ratio and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free).
+    """``modes.LinearModes``: ``count`` modes of the tet body for Young's modulus [Pa] (a
+    number, or (E,) per tet for a painted body: ``PreparedBody.tet_youngs``), Poisson's ratio
+    and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free).
     ValueError when the pins hold every node or the material is not stable."""
     if pinned is not None and len(pinned) >= len(tet_body.nodes):
         raise ValueError("the pins hold every tet node: nothing is left free to move")
@@ -125,12 +145,16 @@ def energy_potential(body, material, progress=lambda fraction, message: None):
 
 
 def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinned=None,
-                 pinned_embedding=None, settings=None):
+                 pinned_embedding=None, settings=None, stiffness=None):
     """A ``PreparedBody`` of a tet mesh in one call (no cache): the render vertices (n, 3)
     embedded; pinned (p,) node indices held (None: a free body) and pinned_embedding the
     render vertices' displacement embedding that holds them (``embed.SurfacePins``; None: the
-    plain embedding); settings the ``ReducedSettings`` (defaults if None)."""
+    plain embedding); settings the ``ReducedSettings`` (defaults if None); stiffness None for a
+    uniform material, or (vertex weights (n,), ratio) of a stiffness group (``stiffness_scale``)."""
     tet_body = embedded(X, T, base_vertices)
-    linear = linear_modes(tet_body, youngs, poisson, density, num_modes, pinned)
+    scale = None if stiffness is None else stiffness_scale(tet_body, *stiffness)
+    linear = linear_modes(tet_body, youngs if scale is None else youngs * scale, poisson,
+                          density, num_modes, pinned)
     deformer = reduced_deformer(tet_body, linear, density, settings or ReducedSettings())
-    return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding)
+    return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding,
+                        stiffness_scale=scale)

@@ -9,7 +9,7 @@ import dataclasses
 
 import numpy as np
 
-from . import accuracy, dynamics, fem, inversion, materials, poses, rig, spacetime
+from . import accuracy, cache, dynamics, inversion, materials, poses, rig, spacetime
 
 
 class NothingToSolve(ValueError):
@@ -198,14 +198,17 @@ class SimulationSettings:
 
 
 def linear_potential(body, youngs, poisson):
-    """The Linear material's reduced potential on the body (an exact quadratic form), made once
-    per Young's modulus [Pa] and Poisson's ratio and kept on the body."""
+    """The Linear material's reduced potential on the body (an exact quadratic form) for its
+    Young's modulus [Pa] and Poisson's ratio, with the body's painted stiffness if it has one
+    (``PreparedBody.material``). Made once per material and kept on the body, keyed by the
+    per-tet Young's modulus it is made of (a number for a uniform body)."""
+    tet_youngs = body.tet_youngs(youngs)
+    key = (cache.content_key(tet_youngs) if np.ndim(tet_youngs) else tet_youngs, poisson)
     kept = body.__dict__.setdefault("_linear_potentials", {})
-    if (youngs, poisson) not in kept:
-        mu, lam = fem.lame_parameters(youngs, poisson)
-        kept[youngs, poisson], _ = materials.prepare_potential(materials.Linear(mu, lam),
-                                                               body.modal_rs, body.volumes)
-    return kept[youngs, poisson]
+    if key not in kept:
+        kept[key], _ = materials.prepare_potential(body.material("LINEAR", youngs, poisson),
+                                                   body.modal_rs, body.volumes)
+    return kept[key]
 
 
 def simulation(body, potential, settings, frame_motion=None, contact=None, external_force=None,
