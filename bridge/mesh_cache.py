@@ -28,6 +28,15 @@ only once the new one plays, only from this .blend's own bakes folder, and only 
 modifier of any object still plays it. Saving the .blend under another folder or name gives the
 new file its own copy (a hard link where the disk allows, ``before_save``), so clearing a bake in
 one .blend never breaks another's.
+
+Farm tasks (bridge/farm.py) bake the bodies of one .blend side by side and do not save it. The
+job decides each body's file at submission (`new_bake_name`), so that the tasks that play that
+body's bake, and the last one that collects every bake into the .blend, know it in advance:
+inside `pinned_identities` a new bake of a named object takes its job's identity (a task run
+again writes the same file, through a temporary one, so it is whole or absent). Inside
+`keeping_files` no file is deleted, since the .blend on disk may still play the files this
+unsaved session no longer does: `discard` deletes them once the .blend that played them is
+saved.
 """
 import contextlib
 import os
@@ -45,6 +54,7 @@ MODIFIER = "RS Elastic Bake"
 HEADER = np.dtype([("magic", "S12"), ("version", "<i4"), ("points", "<i4"), ("start", "<f4"),
                    ("rate", "<f4"), ("samples", "<i4")])
 SUGGEST_BYTES = 64 * 2 ** 20    # shape keys above this size: the panel suggests a Mesh Cache
+IDENTITY = re.compile(r"[0-9a-f]{16}")
 # The modifier's settings a bake sets (and a failed bake puts back).
 PLAYER_SETTINGS = ("cache_format", "filepath", "deform_mode", "interpolation", "time_mode",
                    "play_mode", "frame_start", "frame_scale")
@@ -112,10 +122,58 @@ def bakes_folder(blend_path=None):
     return os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}", "bakes")
 
 
+_PINNED = {}        # {object name: identity} its new bakes take (farm tasks, `pinned_identities`)
+_KEEPING = []       # non-empty while no bake's file may be deleted (`keeping_files`)
+
+
+def bake_name(obj, identity):
+    """The file name of the object's bake of `identity`: its name for people to read (every
+    character but letters, digits, '_' and '-' made '_'), the identity for ownership."""
+    return f"{re.sub(r'[^A-Za-z0-9_-]', '_', obj.name)}.{identity}.pc2"
+
+
+def new_bake_name(obj):
+    """The file name of a new bake of `obj`, with a new identity."""
+    return bake_name(obj, uuid.uuid4().hex[:16])
+
+
+def identity_of(obj, file_name):
+    """The identity in `file_name` if it names a bake of `obj` (``bake_name``), else None."""
+    parts = file_name.rsplit(".", 2)
+    if len(parts) == 3 and IDENTITY.fullmatch(parts[1]) and file_name == bake_name(obj, parts[1]):
+        return parts[1]
+    return None
+
+
 def new_bake_path(obj):
-    """A path for a new bake of `obj`: its name for people to read, a new identity for ownership."""
-    name = re.sub(r"[^A-Za-z0-9_-]", "_", obj.name)
-    return os.path.join(bakes_folder(), f"{name}.{uuid.uuid4().hex[:16]}.pc2")
+    """A path for a new bake of `obj`: a new identity, or the one pinned for it."""
+    identity = _PINNED.get(obj.name)
+    name = new_bake_name(obj) if identity is None else bake_name(obj, identity)
+    return os.path.join(bakes_folder(), name)
+
+
+@contextlib.contextmanager
+def pinned_identities(identities):
+    """While inside, a new bake of an object named in `identities` ({object name: identity})
+    takes that identity (a farm task writes the file its job named)."""
+    saved = dict(_PINNED)
+    _PINNED.update(identities)
+    try:
+        yield
+    finally:
+        _PINNED.clear()
+        _PINNED.update(saved)
+
+
+@contextlib.contextmanager
+def keeping_files():
+    """While inside, no bake's file is deleted (a session whose .blend is not saved, or not
+    yet: the .blend on disk may still play them)."""
+    _KEEPING.append(True)
+    try:
+        yield
+    finally:
+        _KEEPING.pop()
 
 
 def folder_problem(folder):
@@ -195,11 +253,18 @@ def _played_anywhere(path):
 def _delete_if_unused(path):
     """Delete a bake's file that nothing plays any more, if it is in this .blend's own bakes
     folder (a file elsewhere belongs to another .blend)."""
-    if not bpy.data.filepath or _played_anywhere(path):
+    if _KEEPING or not bpy.data.filepath or _played_anywhere(path):
         return
     if os.path.realpath(os.path.dirname(path)) != os.path.realpath(bakes_folder()):
         return
     writes.remove_file_quietly(path)
+
+
+def discard(paths):
+    """Delete the bake files among `paths` that nothing plays any more and that are in this
+    .blend's own bakes folder (after a save made outside `keeping_files`)."""
+    for path in paths:
+        _delete_if_unused(path)
 
 
 @contextlib.contextmanager
@@ -250,21 +315,33 @@ def write(obj, frames, positions):
         _make_folders(os.path.dirname(path), transaction)
         transaction.undo(lambda: writes.remove_file_quietly(path))
         write_pc2(path, positions)
-        old = bake_file(obj)
-        modifier = _player(obj, transaction)
-        modifier.cache_format = 'PC2'
-        modifier.filepath = bpy.path.relpath(path)
-        modifier.deform_mode = 'OVERWRITE'
-        modifier.interpolation = 'LINEAR'
-        modifier.time_mode = 'FRAME'
-        modifier.play_mode = 'SCENE'
-        modifier.frame_start = float(frames[0])
-        modifier.frame_scale = 1.0
-        writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
-        obj.rs_elastic.cache_bake_file = modifier.filepath
-        if old is not None:
-            transaction.after(lambda: _delete_if_unused(old))
+        _play(obj, path, frames[0], transaction)
     return path
+
+
+def play(obj, path, first_frame):
+    """Make the object's bake modifier play the existing .pc2 at `path` (a farm task's) from
+    scene frame `first_frame`, and record it as the object's bake; the previous cache bake's
+    file goes once nothing plays it."""
+    with writes.transaction(f"Playing a Mesh Cache bake on '{obj.name}'") as transaction:
+        _play(obj, path, first_frame, transaction)
+
+
+def _play(obj, path, first_frame, transaction):
+    old = bake_file(obj)
+    modifier = _player(obj, transaction)
+    modifier.cache_format = 'PC2'
+    modifier.filepath = bpy.path.relpath(path)
+    modifier.deform_mode = 'OVERWRITE'
+    modifier.interpolation = 'LINEAR'
+    modifier.time_mode = 'FRAME'
+    modifier.play_mode = 'SCENE'
+    modifier.frame_start = float(first_frame)
+    modifier.frame_scale = 1.0
+    writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
+    obj.rs_elastic.cache_bake_file = modifier.filepath
+    if old is not None and not _same_path(old, path):
+        transaction.after(lambda: _delete_if_unused(old))
 
 
 def clear(obj):
