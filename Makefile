@@ -14,13 +14,22 @@ VENV      := .venv
 PY        := $(VENV)/bin/python
 VERSION   := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 LINUX_ZIP := dist/rs_elastic-$(VERSION)-linux_x64.zip
-SOURCES   := blender_manifest.toml $(wildcard *.py bridge/*.py operators/*.py panels/*.py solver/*.py)
+SOURCES   := blender_manifest.toml $(wildcard *.py bridge/*.py operators/*.py panels/*.py solver/*.py farm/*.js)
+
+# Flamenco (the farm tests and bench): its manager and worker, built from source with Go into
+# build/flamenco/, once (delete the folder to rebuild). The version is the add-on's, so that the
+# Flamenco add-on accepts the manager.
+FLAMENCO_SRC     ?= ../shared/flamenco
+FLAMENCO_BIN     := build/flamenco
+FLAMENCO_VERSION := $(shell sed -n 's/^__version__ = "\(.*\)"/\1/p' $(FLAMENCO_SRC)/addon/flamenco/manager/__init__.py 2>/dev/null)
+FLAMENCO_LDFLAGS := -X projects.blender.org/studio/flamenco/internal/appinfo.ApplicationVersion=$(FLAMENCO_VERSION) \
+                    -X projects.blender.org/studio/flamenco/internal/appinfo.ReleaseCycle=release
 
 # The Python a Blender version embeds, and the interpreter found for it.
 python_version = $(if $(filter 4.% 5.0,$(1)),3.11,3.13)
 python_for     = $(PYTHON$(subst .,,$(call python_version,$(1))))
 
-.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix test-ui test-zoo ui-root demo bench clean
+.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix test-ui test-zoo ui-root test-farm flamenco demo bench clean
 
 all: build
 
@@ -90,8 +99,9 @@ test-zoo: venv $(LINUX_ZIP)
 	    $(PY) -m pytest -q tests/blender/test_zoo.py
 
 # The whole suite: solver, then Blender on the newest LTS, then on every older supported Blender,
-# then the GUI tier.
-test: test-solver test-blender test-matrix test-ui
+# then the GUI tier, then the farm (a Flamenco manager and worker built from source, baking shots
+# end to end).
+test: test-solver test-blender test-matrix test-ui test-farm
 
 # The whole Blender suite on each older version, with the same zips (validated by that version's
 # own extension tool first).
@@ -115,11 +125,29 @@ ui-root:
 test-ui: venv $(LINUX_ZIP) ui-root
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) RS_ELASTIC_UI_ROOT=$(UI_ROOT) $(PY) -m pytest -q -rs tests/ui
 
+# The source may be read-only (nothing is written into it: no VCS stamp, the binaries go to
+# build/flamenco); Go fetches the modules it needs from the module proxy into its own cache.
+$(FLAMENCO_BIN)/flamenco-%:
+	@test -d $(FLAMENCO_SRC)/cmd/flamenco-$* || { echo "make: no Flamenco source in $(FLAMENCO_SRC) (set FLAMENCO_SRC=/path/to/flamenco)"; exit 1; }
+	@command -v go >/dev/null || { echo "make: Go is not installed (Flamenco needs Go 1.26 or later)"; exit 1; }
+	mkdir -p $(FLAMENCO_BIN)
+	cd $(FLAMENCO_SRC) && go build -buildvcs=false -ldflags "$(FLAMENCO_LDFLAGS)" -o $(abspath $@).part ./cmd/flamenco-$*
+	mv $@.part $@
+
+flamenco: $(FLAMENCO_BIN)/flamenco-manager $(FLAMENCO_BIN)/flamenco-worker
+
+# Farm tests: manager and worker on 127.0.0.1 with temporary folders, the worker's Blender being
+# tools/bpy-blender (the bpy module behind Blender's command line).
+test-farm: venv $(LINUX_ZIP) flamenco
+	FLAMENCO_SRC=$(FLAMENCO_SRC) FLAMENCO_BIN=$(FLAMENCO_BIN) RS_ELASTIC_ZIP=$(LINUX_ZIP) \
+	    $(PY) -m pytest -q --rootdir=tests tests/farm
+
 demo: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) tools/demo.py --output demo_output
 
-bench: deps $(LINUX_ZIP)
-	PYTHONPATH=.deps:. $(PY) bench/run_bench.py --output bench_output
+bench: deps $(LINUX_ZIP) flamenco
+	FLAMENCO_SRC=$(FLAMENCO_SRC) FLAMENCO_BIN=$(FLAMENCO_BIN) \
+	    PYTHONPATH=.deps:. $(PY) bench/run_bench.py --output bench_output
 
 clean:
 	rm -rf dist build demo_output bench_output .pytest_cache

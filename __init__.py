@@ -2,11 +2,12 @@
 import bpy
 
 from . import operators, panels
-from .bridge import cli, handlers, properties, tet_overlay
+from .bridge import cli, farm, handlers, properties, tet_overlay
 
 
 def register():
     properties.register()
+    farm.register()
     for cls in operators.CLASSES + panels.CLASSES:
         bpy.utils.register_class(cls)
     tet_overlay.register()
@@ -20,4 +21,5 @@ def unregister():
     tet_overlay.unregister()
     for cls in reversed(operators.CLASSES + panels.CLASSES):
         bpy.utils.unregister_class(cls)
+    farm.unregister()
     properties.unregister()

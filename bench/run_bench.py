@@ -5,9 +5,11 @@ clock on this machine; compare ratios within one run only.
 
     python bench/run_bench.py --output bench_output [--quick]
     python bench/run_bench.py --child pins box      # one case alone, its JSON row on stdout
+    python bench/run_bench.py --farm                # the farm row alone
 """
 import argparse
 import json
+import os
 import pathlib
 import platform
 import resource
@@ -978,6 +980,39 @@ def mesh_cache_table(row):
     return "\n".join(lines) + "\n"
 
 
+def run_farm_shot():
+    """The three-body shot on a Flamenco manager and one worker against the same bakes one
+    after another on the command line (bench/farm_shot.py, its own process)."""
+    zips = sorted((ROOT / "dist").glob("rs_elastic-*-linux_x64.zip"))
+    if not zips:
+        return dict(case="farm", arg="3", error="no extension zip: run make build")
+    source = os.environ.get("FLAMENCO_SRC", str(ROOT.parent / "shared" / "flamenco"))
+    binaries = os.environ.get("FLAMENCO_BIN", str(ROOT / "build" / "flamenco"))
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "farm_shot.py"), str(zips[-1]),
+                          os.path.abspath(source), os.path.abspath(binaries)],
+                         capture_output=True, text=True, cwd=ROOT)
+    if out.returncode != 0:
+        return dict(case="farm", arg="3", error=(out.stderr.strip().splitlines() or ["?"])[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def farm_table(row):
+    lines = ["## A shot on the farm (three bodies, one Flamenco worker, Blender = bpy module)", "",
+             "| bodies | frames | pickup s | farm s | command line s | overhead s | tasks s |",
+             "|---|---|---|---|---|---|---|"]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        tasks = ", ".join(f"{name} {s:.1f}" for name, s in row["task_seconds"].items())
+        lines.append(f"| {row['bodies']} | {row['frames']} | {row['pickup_seconds']:.1f} "
+                     f"| {row['farm_seconds']:.1f} | {row['command_line_seconds']:.1f} "
+                     f"| {row['overhead_seconds']:.1f} | {tasks} |")
+    lines += ["", "pickup: submission to the first task (an idle worker asks every 20 s); farm: "
+              "first task to the job's end (three bakes and the collect task); command line: "
+              "the same three bakes one after another."]
+    return "\n".join(lines) + "\n"
+
+
 def run_child(case, arg):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
                          capture_output=True, text=True, cwd=ROOT)
@@ -1003,9 +1038,16 @@ def main():
     parser.add_argument("--output", default="bench_output")
     parser.add_argument("--child", nargs=2)
     parser.add_argument("--quick", action="store_true", help="smallest sizes only")
+    parser.add_argument("--farm", action="store_true",
+                        help="only the farm row (needs `make build flamenco`)")
     args = parser.parse_args()
     if args.child:
         print(json.dumps(CASES[args.child[0]](args.child[1])))
+        return
+    if args.farm:
+        row = run_farm_shot()
+        print(json.dumps(row))
+        print(farm_table(row))
         return
 
     meshes = sorted(p.name for p in MESHES.iterdir())
@@ -1090,6 +1132,9 @@ def main():
     results["mesh_cache"] = run_mesh_cache_shot()
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + mesh_cache_table(results["mesh_cache"])
+    results["farm"] = run_farm_shot()
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + farm_table(results["farm"])
     (output / "results.md").write_text(text)
     print(text)
 

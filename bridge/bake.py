@@ -350,6 +350,17 @@ def write_bake(obj, frames, positions):
     return _active_user_keys(obj)
 
 
+def play_cache_bake(obj, first_frame, path):
+    """Make the existing .pc2 at `path` (a farm task's bake) the object's bake, played from
+    scene frame `first_frame`: as `write_bake` with Bake To Mesh Cache, the file already
+    written."""
+    require_writable(obj)
+    with writes.transaction(f"Baking '{obj.name}'") as transaction:
+        mesh_cache.play(obj, path, first_frame)
+        remove_keys_later(obj, [b.name for b in owned_keys(obj, "bake")], transaction)
+        obj.data.update()
+
+
 def clear_bake(obj):
     """Remove the bake: its keys and F-curves, or its Mesh Cache modifier and file. Returns how
     many frames were removed, or None if the object has no bake."""

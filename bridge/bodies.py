@@ -16,6 +16,11 @@ is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fun
 training settings. So stages of different runs can never mix. Each stage is looked up in memory,
 then in its cache file (`stage_cache`), and computed only if neither has it.
 
+A preparation may be told to only load (``cached_only``: the command line's `--only bake`, a
+farm's Bake Only): a stage that is neither in memory nor in a cache file is then refused in one
+line instead of computed. Embedding the tet mesh kept in the .blend is not refused (cheap, and the
+same everywhere).
+
 Whether a preparation still matches its object is `staleness`'s.
 """
 import dataclasses
@@ -75,6 +80,7 @@ class BodyInputs:
     cubature_tolerance: float = 0.0
     training_poses: int = 0
     energy: "EnergyInputs" = None   # set to train the energy cubature too (StVK / Fung)
+    cached_only: bool = False      # load what the .blend and its cache hold, compute nothing
 
     @property
     def meshing(self):
@@ -262,6 +268,14 @@ def _pin_weights(obj, group):
 
 # --- the stages (worker-thread safe: no bpy) ------------------------------------------------------
 
+def _refuse_unless_computing(object_name, cached_only, missing):
+    """A preparation that may only load stops here, before computing what is `missing` ("its
+    linear modes are"), with one line."""
+    if cached_only:
+        raise InputError(f"'{object_name}' is not prepared: {missing} not in the cache next to "
+                         "the .blend, and bake only prepares nothing (prepare it first)")
+
+
 def proxy_for(inputs, job):
     """(V, F, closed) of the surface fTetWild meshes (``preparation.mesher_surface``); says which
     and how long it should take in the progress. InputError at once, before fTetWild starts, when
@@ -293,6 +307,7 @@ def tet_stage(inputs, job):
         if stored is not None:
             X, T = stored
         else:
+            _refuse_unless_computing(inputs.object_name, inputs.cached_only, "its tet mesh is")
             V, F, closed = proxy_for(inputs, job)
             stage_cache.stats["tetrahedralize"] += 1
             try:
@@ -339,6 +354,7 @@ def modes_stage(inputs, tet_body, job, tets_digest, pins, tet_youngs=None):
     youngs = inputs.youngs if tet_youngs is None else tet_youngs
 
     def compute():
+        _refuse_unless_computing(inputs.object_name, inputs.cached_only, "its linear modes are")
         job.step(0.55, f"Computing {inputs.num_modes} linear modes")
         stage_cache.stats["modes"] += 1
         try:
@@ -361,6 +377,8 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.
     modes_digest = modes_digest or stage_cache.digest("modes", linear_modes)
 
     def compute():
+        _refuse_unless_computing(inputs.object_name, inputs.cached_only,
+                                 "its reduced RS deformer is")
         job.step(0.72, "Reduced RS: training poses")
         stage_cache.stats["reduced"] += 1
         return preparation.reduced_deformer(
@@ -401,15 +419,16 @@ def cached_energy(energy, body):
     return potential if potential is not None and _fits_body(body)(potential) else None
 
 
-def energy_stage(energy, body, job, start=0.0, end=1.0):
+def energy_stage(energy, body, job, start=0.0, end=1.0, cached_only=False):
     """The reduced potential (`materials.ReducedPotential`) of EnergyInputs `energy` on the
-    PreparedBody: from memory, the disk cache, or trained (worker-thread safe; its progress runs
-    from `start` to `end`, and a cancel stops the training)."""
+    PreparedBody: from memory, the disk cache, or trained unless `cached_only` (worker-thread
+    safe; its progress runs from `start` to `end`, and a cancel stops the training)."""
     parent = energy_parent(body)
     title = f"{energy.label} energy cubature"
     energy = energy.for_body(body)
 
     def compute():
+        _refuse_unless_computing(energy.object_name, cached_only, f"its {title} is")
         job.step(start, f"{title}: RS coordinates of the modes")
         stage_cache.stats["energy"] += 1
         return preparation.energy_potential(
@@ -437,7 +456,8 @@ def prepare(inputs, job):
                         pinned_embedding=None if pins is None else pins.embedding,
                         stiffness_scale=scale)
     if inputs.energy is not None:
-        body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99)
+        body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99,
+                                   cached_only=inputs.cached_only)
         body.energy_key = inputs.energy.key(energy_parent(body))
     job.step(1.0, "Done")
     return body

@@ -6,15 +6,22 @@ or simulates, bakes, and saves, and returns the exit code: 0 on success, 2 with 
 for a bad argument (unknown object, malformed or unbounded --frames, unusable --output or bake
 target), 1 with one line for a failure. Saving is the last step: what it reports is read before,
 so a failure never leaves a saved file behind, and never overwrites the open file.
+
+Farm tasks (bridge/farm.py, farm/rs_elastic_bake.js) bake the bodies of one file side by side
+without saving it: `bake --bake-to cache --no-save --bake-file FILE [--with-bake OTHER=FILE …]
+[--only prepare|bake]` writes only the body's .pc2 under the name its job gave it (or, prepare
+only, the cache) while the bakes it reads play, and `collect --bake NAME=FILE …` makes every
+body's file its bake, checks that it plays, and saves the file.
 """
 import argparse
+import contextlib
 import os
 import re
 import sys
 
 import bpy
 
-from . import bake, mesh_cache, spacetime_inputs, writes
+from . import bake, farm, mesh_cache, spacetime_inputs, writes
 from .properties import LAST_FRAME
 from .scene import MAX_FRAMES, InputError
 
@@ -53,7 +60,93 @@ def _parser():
                                "opened .blend, played by a Mesh Cache modifier); default: the "
                                "object's Bake To setting")
     bake_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open file)")
+    _farm_arguments(bake_cmd, commands)
     return parser
+
+
+# --- for farm tasks (bridge/farm.py): bodies of one file baked side by side -----------------------
+
+def _farm_arguments(bake_cmd, commands):
+    bake_cmd.add_argument("--only", choices=("prepare", "bake"),
+                          help="prepare only (the cache next to the .blend), or bake only: "
+                               "compute no preparation; a body whose preparation is not in the "
+                               "file and its cache fails")
+    bake_cmd.add_argument("--bake-file", metavar="FILE",
+                          help="the Mesh Cache file to write, a bake file name of the body's "
+                               "(NAME.<16 hex digits>.pc2 in the bakes folder), as a farm job "
+                               "names it")
+    bake_cmd.add_argument("--with-bake", metavar="OBJECT=FILE", action="append", default=[],
+                          help="play this Mesh Cache file of the bakes folder as OBJECT's bake "
+                               "while baking (a body whose bake this one reads); repeatable")
+    bake_cmd.add_argument("--no-save", action="store_true",
+                          help="leave the .blend as it is: keep only the Mesh Cache file "
+                               "(--bake-to cache) or, with --only prepare, the cache")
+    collect_cmd = commands.add_parser(
+        "collect", help="make each listed Mesh Cache file its body's bake (in the body's Bake To "
+                        "form), check that it plays, and save")
+    collect_cmd.add_argument("--bake", metavar="OBJECT=FILE", action="append", required=True,
+                             help="a body and the file of the bakes folder a farm task baked it "
+                                  "to; repeatable")
+    collect_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open "
+                                              "file)")
+
+
+def _bake_pair(text, option):
+    """(body, path) of an OBJECT=FILE argument (the name may hold '=', a bake file name not)."""
+    name, equals, file_name = text.rpartition("=")
+    if not equals:
+        raise UsageError(f"{option} must be OBJECT=FILE, got '{text}'")
+    obj = _body(name)
+    try:
+        return obj, farm.bake_path(obj, file_name)
+    except InputError as exc:
+        raise UsageError(f"{option} {text}: {exc}") from None
+
+
+def _farm_options(args, obj, bake_to):
+    """The farm bakes that play while `obj` bakes ([(body, path)]); UsageError for options that
+    contradict each other or do not fit."""
+    if args.no_save and args.output:
+        raise UsageError("--no-save and --output contradict each other")
+    if args.no_save and args.only != "prepare" and bake_to != 'CACHE':
+        raise UsageError("--no-save keeps a bake only as a Mesh Cache: add --bake-to cache")
+    if args.bake_file is not None:
+        if bake_to != 'CACHE' or args.only == "prepare":
+            raise UsageError("--bake-file names a Mesh Cache bake: add --bake-to cache (and no "
+                             "--only prepare)")
+        if mesh_cache.identity_of(obj, args.bake_file) is None:
+            raise UsageError(f"--bake-file '{args.bake_file}' is not a bake file name of "
+                             f"'{obj.name}' ({mesh_cache.bake_name(obj, '<16 hex digits>')})")
+    playing = [_bake_pair(text, "--with-bake") for text in args.with_bake]
+    if any(other == obj for other, _ in playing):
+        raise UsageError(f"--with-bake '{obj.name}' is the body being baked")
+    return playing
+
+
+def _farm_task(args, obj):
+    """What a farm task's bake runs inside: its file's identity pinned (--bake-file). (Bake files
+    are deleted only when the .blend is saved, so a --no-save task deletes none.)"""
+    stack = contextlib.ExitStack()
+    if args.bake_file is not None:
+        stack.enter_context(mesh_cache.pinned_identities(
+            {obj.name: mesh_cache.identity_of(obj, args.bake_file)}))
+    return stack
+
+
+def collect_command(args):
+    """Check the bodies, their files' names and the output first (UsageError), then collect,
+    save, and delete the files the saved shot no longer plays."""
+    bakes = [_bake_pair(text, "--bake") for text in args.bake]
+    output = _output_path(args.output)
+    try:
+        unplayed = farm.collect(bakes, bpy.context.scene)
+    except InputError as exc:
+        raise CommandError(str(exc)) from None
+    report = (f"collected the farm bakes of {', '.join(repr(obj.name) for obj, _ in bakes)} "
+              f"(each plays) into {output}")
+    _save(output)
+    mesh_cache.discard(unplayed)
+    return report
 
 
 def parse_arguments(argv):
@@ -163,9 +256,9 @@ def _operator_error(exc):
     return first
 
 
-def _run_operator(name, message):
+def _run_operator(name, message, **properties):
     try:
-        result = getattr(bpy.ops.rs_elastic, name)()
+        result = getattr(bpy.ops.rs_elastic, name)(**properties)
     except RuntimeError as exc:     # the operator reported an error
         raise CommandError(_operator_error(exc)) from None
     if result != {'FINISHED'}:
@@ -186,35 +279,56 @@ def bake_command(args):
     a failure never leaves a saved file behind or overwrites the open file."""
     obj = _body(args.object)
     frames = None if args.frames is None else _frame_range(args.frames)
-    output = _output_path(args.output)
     bake_to = obj.rs_elastic.bake_to if args.bake_to is None else args.bake_to.upper()
-    _check_cache_target(obj, bake_to)
+    playing = _farm_options(args, obj, bake_to)
+    output = None if args.no_save else _output_path(args.output)
+    if args.only != "prepare":
+        _check_cache_target(obj, bake_to)
     bpy.context.view_layer.objects.active = obj
     mode_note = _leave_mode(obj)
     obj.rs_elastic.bake_to = bake_to
     if frames is not None:
         obj.rs_elastic.use_scene_range = False
         obj.rs_elastic.frame_start, obj.rs_elastic.frame_end = frames
+    with _farm_task(args, obj):
+        report = _prepare_and_bake(args, obj, playing, output, mode_note)
+    if output is not None:
+        _save(output)
+    return report
+
+
+def _prepare_and_bake(args, obj, playing, output, mode_note=""):
+    """Play the bakes `playing` reads, prepare (only load, with --only bake), bake unless
+    --only prepare; returns the report (ending with `mode_note`)."""
+    try:
+        farm.play_bakes(playing, bpy.context.scene)
+    except InputError as exc:
+        raise CommandError(str(exc)) from None
     # Prepare is cheap when the cache is valid: it only checks and loads.
-    _run_operator("prepare", f"could not prepare '{obj.name}'")
+    _run_operator("prepare", f"could not prepare '{obj.name}'", cached_only=args.only == "bake")
+    if args.only == "prepare":
+        return f"prepared '{obj.name}'" + ("" if output is None else f" into {output}")
     _run_operator(OPERATORS[args.mode], f"the {args.mode} bake of '{obj.name}' did not finish")
     baked = bake.bake_frames(obj)
     if not baked:
         raise CommandError(f"the {args.mode} bake of '{obj.name}' left no bake to save")
     status = spacetime_inputs.LAST_STATUS.get(obj.name) if args.mode == "spacetime" else None
-    report = (f"baked frames {baked[0]}-{baked[-1]} of '{obj.name}' into {output}{mode_note}"
-              + ("" if status is None else f"\nrs_elastic: {status[1]}"))
-    _save(output)
-    return report
+    where = output if output is not None else mesh_cache.bake_file(obj)
+    return (f"baked frames {baked[0]}-{baked[-1]} of '{obj.name}' into {where}{mode_note}"
+            + ("" if status is None else f"\nrs_elastic: {status[1]}"))
 
 
 def _say_error(message):
     print(f"rs_elastic: error: {message}", file=sys.stderr, flush=True)
 
 
+COMMANDS = {"bake": bake_command, "collect": collect_command}
+
+
 def main(argv):
     try:
-        message = bake_command(parse_arguments(argv))
+        args = parse_arguments(argv)
+        message = COMMANDS[args.command](args)
     except SystemExit as exc:          # --help
         return int(exc.code or 0)
     except UsageError as exc:

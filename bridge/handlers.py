@@ -17,6 +17,12 @@ def _bakes_before_save(filepath="", *_args):
 
 
 @persistent
+def _bakes_after_load(*_args):
+    # Another file: what this session wrote or released is no longer its to delete.
+    mesh_cache.forget_session()
+
+
+@persistent
 def _bakes_after_save(filepath="", *_args):
     mesh_cache.after_save(filepath)
 
@@ -101,7 +107,7 @@ def _live_toggled(settings, context):
 _ALL_FINGERPRINTS_GONE = ("load_post", "undo_post", "redo_post")
 _SAVE_HANDLERS = (("save_pre", _bakes_before_save), ("save_post", _bakes_after_save),
                   ("save_post_fail", _bakes_after_failed_save),
-                  ("save_post", _move_cache_after_save))
+                  ("save_post", _move_cache_after_save), ("load_post", _bakes_after_load))
 _UPDATE_HANDLERS = (("depsgraph_update_post", _forget_fingerprints),
                     ("depsgraph_update_post", _show_waiting_previews),
                     ("depsgraph_update_post", _live_resolve),

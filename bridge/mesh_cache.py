@@ -23,13 +23,22 @@ the modifier (Blender remaps its relative path when the .blend is saved elsewher
 folder is only informative. Bakes made before identities (``<object>.pc2``, a modifier named
 ``MODIFIER``) are recognised the same way.
 
-A bake's file is never written over: a new bake writes a new file. Files nothing plays any more
-(after Clear Bake or a re-bake) are deleted when the .blend is saved (``after_save``), only from
-its own bakes folder: until then undo can bring their bake back, and the saved .blend never plays
-a deleted file. Saving the .blend under another folder or name gives the new file its own copy
-(a hard link where the disk allows, ``before_save``), so clearing a bake in one .blend never
-breaks another's; the files written since the last save stay only where a saved .blend plays
-them.
+A bake's file is never written over: a new bake writes a new file. The files a Clear Bake or a
+re-bake stops playing are deleted when the .blend is saved (``after_save``), if nothing plays
+them then and they are in its own bakes folder: until then undo can bring their bake back, and
+the saved .blend never plays a deleted file. Only files this session wrote or stopped playing are
+deleted, never one it does not know (a farm task's, still running). Saving the .blend under
+another folder or name gives the new file its own copy (a hard link where the disk allows,
+``before_save``), so clearing a bake in one .blend never breaks another's; the files written
+since the last save stay only where a saved .blend plays them.
+
+Farm tasks (bridge/farm.py) bake the bodies of one .blend side by side and do not save it. The
+job decides each body's file at submission (`new_bake_name`), so that the tasks that play that
+body's bake, and the last one that collects every bake into the .blend, know it in advance:
+inside `pinned_identities` a new bake of a named object takes its job's identity (a task run
+again writes the same file, through a temporary one, so it is whole or absent). A task does not
+save, so it deletes nothing; the last one saves the shot, then `discard`s the farm's files the
+shot does not play.
 """
 import contextlib
 import os
@@ -47,6 +56,7 @@ MODIFIER = "RS Elastic Bake"
 HEADER = np.dtype([("magic", "S12"), ("version", "<i4"), ("points", "<i4"), ("start", "<f4"),
                    ("rate", "<f4"), ("samples", "<i4")])
 SUGGEST_BYTES = 64 * 2 ** 20    # shape keys above this size: the panel suggests a Mesh Cache
+IDENTITY = re.compile(r"[0-9a-f]{16}")
 # The modifier's settings a bake sets (and a failed bake puts back).
 PLAYER_SETTINGS = ("cache_format", "filepath", "deform_mode", "interpolation", "time_mode",
                    "play_mode", "frame_start", "frame_scale")
@@ -114,10 +124,46 @@ def bakes_folder(blend_path=None):
     return os.path.join(folder, f"blendcache_{os.path.splitext(name)[0]}", "bakes")
 
 
+_PINNED = {}        # {object name: identity} its new bakes take (farm tasks, `pinned_identities`)
+
+
+def bake_name(obj, identity):
+    """The file name of the object's bake of `identity`: its name for people to read (every
+    character but letters, digits, '_' and '-' made '_'), the identity for ownership."""
+    return f"{re.sub(r'[^A-Za-z0-9_-]', '_', obj.name)}.{identity}.pc2"
+
+
+def new_bake_name(obj):
+    """The file name of a new bake of `obj`, with a new identity."""
+    return bake_name(obj, uuid.uuid4().hex[:16])
+
+
+def identity_of(obj, file_name):
+    """The identity in `file_name` if it names a bake of `obj` (``bake_name``), else None."""
+    parts = file_name.rsplit(".", 2)
+    if len(parts) == 3 and IDENTITY.fullmatch(parts[1]) and file_name == bake_name(obj, parts[1]):
+        return parts[1]
+    return None
+
+
 def new_bake_path(obj):
-    """A path for a new bake of `obj`: its name for people to read, a new identity for ownership."""
-    name = re.sub(r"[^A-Za-z0-9_-]", "_", obj.name)
-    return os.path.join(bakes_folder(), f"{name}.{uuid.uuid4().hex[:16]}.pc2")
+    """A path for a new bake of `obj`: a new identity, or the one pinned for it."""
+    identity = _PINNED.get(obj.name)
+    name = new_bake_name(obj) if identity is None else bake_name(obj, identity)
+    return os.path.join(bakes_folder(), name)
+
+
+@contextlib.contextmanager
+def pinned_identities(identities):
+    """While inside, a new bake of an object named in `identities` ({object name: identity})
+    takes that identity (a farm task writes the file its job named)."""
+    saved = dict(_PINNED)
+    _PINNED.update(identities)
+    try:
+        yield
+    finally:
+        _PINNED.clear()
+        _PINNED.update(saved)
 
 
 def folder_problem(folder):
@@ -187,13 +233,22 @@ def bake_file(obj, modifier=None):
     return None if modifier is None else _absolute(obj, modifier.filepath)
 
 
-def _delete_unplayed(paths):
-    """Delete the bake files of `paths` that no Mesh Cache modifier plays."""
+def _delete_unplayed(paths, folder=None):
+    """Delete the bake files of `paths` that no Mesh Cache modifier plays (with `folder`: only
+    those in it)."""
     played = {os.path.realpath(_absolute(o, m.filepath)) for o in bpy.data.objects
               for m in o.modifiers if m.type == 'MESH_CACHE'}
     for path in paths:
-        if os.path.realpath(path) not in played:
+        if os.path.realpath(path) in played:
+            continue
+        if folder is None or _same_path(os.path.dirname(path), folder):
             writes.remove_file_quietly(path)
+
+
+def discard(paths):
+    """Delete the bake files among `paths` that nothing plays any more and that are in this
+    (saved) .blend's own bakes folder."""
+    _delete_unplayed(paths, bakes_folder())
 
 
 @contextlib.contextmanager
@@ -244,19 +299,34 @@ def write(obj, frames, positions):
         _make_folders(os.path.dirname(path), transaction)
         transaction.undo(lambda: writes.remove_file_quietly(path))
         write_pc2(path, positions)
-        modifier = _player(obj, transaction)
-        modifier.cache_format = 'PC2'
-        modifier.filepath = bpy.path.relpath(path)
-        modifier.deform_mode = 'OVERWRITE'
-        modifier.interpolation = 'LINEAR'
-        modifier.time_mode = 'FRAME'
-        modifier.play_mode = 'SCENE'
-        modifier.frame_start = float(frames[0])
-        modifier.frame_scale = 1.0
-        writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
-        obj.rs_elastic.cache_bake_file = modifier.filepath
+        _play(obj, path, frames[0], transaction)
     _UNSAVED.add(path)
     return path
+
+
+def play(obj, path, first_frame):
+    """Make the object's bake modifier play the existing .pc2 at `path` (a farm task's) from
+    scene frame `first_frame`, and record it as the object's bake; the previous cache bake's
+    file goes once nothing plays it."""
+    with writes.transaction(f"Playing a Mesh Cache bake on '{obj.name}'") as transaction:
+        _play(obj, path, first_frame, transaction)
+
+
+def _play(obj, path, first_frame, transaction):
+    old = bake_file(obj)
+    modifier = _player(obj, transaction)
+    modifier.cache_format = 'PC2'
+    modifier.filepath = bpy.path.relpath(path)
+    modifier.deform_mode = 'OVERWRITE'
+    modifier.interpolation = 'LINEAR'
+    modifier.time_mode = 'FRAME'
+    modifier.play_mode = 'SCENE'
+    modifier.frame_start = float(first_frame)
+    modifier.frame_scale = 1.0
+    writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
+    obj.rs_elastic.cache_bake_file = modifier.filepath
+    if old is not None and not _same_path(old, path):
+        transaction.after(lambda: _RELEASED.add(old))
 
 
 def clear(obj):
@@ -267,7 +337,8 @@ def clear(obj):
         return None
     frames = len(frames_of(obj))
     with writes.transaction(f"Clearing the Mesh Cache bake of '{obj.name}'") as transaction:
-        name = modifier.name
+        path, name = bake_file(obj, modifier), modifier.name
+        transaction.after(lambda: _RELEASED.add(path))
         writes.keep_values(transaction, obj.rs_elastic, ["cache_bake_file"])
         obj.rs_elastic.cache_bake_file = ""
         saved = _modifier_settings(obj, modifier)
@@ -321,7 +392,8 @@ def poses(obj):
 
 # --- saving under another name --------------------------------------------------------------------
 
-_UNSAVED = set()   # bake files written since the open .blend was last saved where it is
+_UNSAVED = set()    # bake files written since the open .blend was last saved where it is
+_RELEASED = set()   # bake files a Clear Bake or a re-bake stopped playing since then
 _MOVED = []     # during a save: (object, modifier, filepath before, record before, file made)
 
 
@@ -388,26 +460,24 @@ def _moved_players():
 
 def after_save(filepath):
     """save_post: a saved copy (the open file stays the old one) leaves the open file's bakes
-    playing their own files. Saved as the open file, the files its bakes folder holds that
-    nothing plays are deleted, and so are those written since the last save that the save
-    moved elsewhere (no saved .blend plays them)."""
+    playing their own files. Saved as the open file, what nothing plays now is deleted: the
+    files released since the last save that are in its own bakes folder, and those written
+    since then wherever they are (the save moved their bakes to its own copies)."""
     if not _same_path(filepath, bpy.data.filepath):
         for obj, modifier, before, record, _ in _moved_players():
             modifier.filepath, obj.rs_elastic.cache_bake_file = before, record
         _MOVED.clear()
         return
     _MOVED.clear()
-    folder = bakes_folder(filepath)
-    owned = [os.path.join(folder, name) for name in _listdir(folder) if name.endswith(".pc2")]
-    _delete_unplayed(owned + sorted(_UNSAVED))
+    _delete_unplayed(sorted(_RELEASED), bakes_folder(filepath))
+    _delete_unplayed(sorted(_UNSAVED))
+    forget_session()
+
+
+def forget_session():
+    """load_post, and after a save: no file written or released is pending any more."""
     _UNSAVED.clear()
-
-
-def _listdir(folder):
-    try:
-        return sorted(os.listdir(folder))
-    except OSError:
-        return []
+    _RELEASED.clear()
 
 
 def after_failed_save(filepath):

@@ -19,9 +19,15 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
     bl_label = "Prepare Body"
     bl_options = {'REGISTER', 'UNDO'}
 
+    cached_only: bpy.props.BoolProperty(
+        name="Cached Only", default=False, options={'HIDDEN', 'SKIP_SAVE'},
+        description="Only load what the .blend and its cache hold; a stage that would have to "
+                    "be computed is refused (the command line's --only bake)")
+
     def make_work(self, context):
         inputs = bodies.read_inputs(context.active_object, context.evaluated_depsgraph_get())
         inputs.energy = bodies.energy_inputs(context.active_object)
+        inputs.cached_only = self.cached_only
         self._inputs = inputs
         return lambda job: bodies.prepare(inputs, job)
 

@@ -71,6 +71,7 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
             row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
         else:
             row.label(text="Not prepared", icon='DOT')
+        self.layout.operator("rs_elastic.write_farm_job_type", icon='NETWORK_DRIVE')
 
 
 CLASSES = (RS_ELASTIC_PT_body,)
