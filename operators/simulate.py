@@ -8,7 +8,7 @@ on the main thread and run as a second job, within the same operator.
 import bpy
 import numpy as np
 
-from ..bridge import bake, jobs, scene, simulation_inputs, stage_cache, writes
+from ..bridge import bake, jobs, preview, scene, simulation_inputs, stage_cache, writes
 from ..bridge.scene import InputError
 
 ENERGY, SIMULATE = "energy", "simulate"
@@ -89,6 +89,8 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
+        if not obj.rs_elastic.live:     # the mode preview would add to the bake: it steps aside
+            preview.refresh(obj)
         self.report({'INFO'}, f"'{obj.name}': simulated and baked frames "
                               f"{inputs.frames[0]}–{inputs.frames[-1]}")
         return {'FINISHED'}

@@ -1,7 +1,7 @@
 """Solve a space-time edit of the active body and bake it into shape keys."""
 import bpy
 
-from ..bridge import bake, jobs, spacetime_inputs, writes
+from ..bridge import bake, jobs, preview, spacetime_inputs, writes
 from ..bridge.scene import InputError
 
 
@@ -34,6 +34,8 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
+        if not obj.rs_elastic.live:     # the mode preview would add to the bake: it steps aside
+            preview.refresh(obj)
         worst = max((h.residual for h in settings.handles), default=-1.0)
         self.report({'INFO'}, f"'{obj.name}': baked frames {inputs.frames[0]}–{inputs.frames[-1]}"
                               f" in {result.iterations} iterations"
