@@ -46,6 +46,21 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
 def _record_solve(obj, inputs, result, transaction):
     """Each handle's residual and the objective's history, for the panel (undone with the bake)."""
     settings = obj.rs_elastic
+    forget_solve(obj, transaction)
+    scale = inputs.world_scale          # positive, a mirrored object's too
+    for index, rows in inputs.track_slices:
+        settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
+    for _, _, objective in result.history:
+        settings.solve_history.add().value = float(objective)
+
+
+CLASSES = (RS_ELASTIC_OT_solve_spacetime,)
+
+
+def forget_solve(obj, transaction):
+    """Clear the last solve's residuals and objectives (kept for `transaction`'s undo): the
+    panel shows them only while that solve's bake is in place."""
+    settings = obj.rs_elastic
     for handle in settings.handles:
         writes.keep_values(transaction, handle, ["residual"])
     history = [item.value for item in settings.solve_history]
@@ -55,14 +70,6 @@ def _record_solve(obj, inputs, result, transaction):
         for value in history:
             settings.solve_history.add().value = value
     transaction.undo(undo)
-    scale = inputs.world_scale          # positive, a mirrored object's too
     for handle in settings.handles:
         handle.residual = -1.0
-    for index, rows in inputs.track_slices:
-        settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
     settings.solve_history.clear()
-    for _, _, objective in result.history:
-        settings.solve_history.add().value = float(objective)
-
-
-CLASSES = (RS_ELASTIC_OT_solve_spacetime,)
