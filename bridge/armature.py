@@ -18,7 +18,7 @@ import dataclasses
 import numpy as np
 
 from ..solver import rig
-from . import scene
+from . import scene, transforms
 from .scene import InputError
 
 
@@ -121,6 +121,8 @@ def bone_transforms(obj, bones, blender_scene, frames):
     object's own (for vertices no bone moves). The Armature modifier maps rest point X of the
     mesh to A P_b B_b^-1 A^-1 M X in world space, with A the armature's and M the mesh's world
     matrix, P_b the posed and B_b the rest bone matrix (armature space)."""
+    if transforms.transforming():       # frame_set would undo the artist's move
+        raise transforms.ArtistMoving()
     rig = armature_modifier(obj).object
     current = blender_scene.frame_current
     out = np.empty((len(frames), len(bones) + 1, 3, 4))

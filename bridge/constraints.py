@@ -100,9 +100,12 @@ def _world_to_body(obj, blender_scene, plans, first):
     if not needed:
         return [np.zeros((0, 3)) for _ in plans], [np.zeros((0, 3, 3)) for _ in plans]
     empties = [plan[0] for plan in plans]
-    matrices = transforms.world_matrices(                # one scene evaluation per frame
-        [obj] + empties, blender_scene, needed,
-        [f"'{obj.name}'"] + [f"handle '{empty.name}'" for empty in empties])
+    names = [f"'{obj.name}'"] + [f"handle '{empty.name}'" for empty in empties]
+    # From the keys where that is exact: setting the scene's frame would put an Empty the
+    # artist is dragging back on its key (Live reads while the drag runs).
+    matrices = transforms.curve_world_matrices([obj] + empties, blender_scene, needed, names)
+    if matrices is None:                                 # one scene evaluation per frame
+        matrices = transforms.world_matrices([obj] + empties, blender_scene, needed, names)
     transforms.require_invertible(f"'{obj.name}'", matrices[0], needed)
     row = {frame: i for i, frame in enumerate(needed)}
     to_body = np.linalg.inv(matrices[0])                                     # (F, 4, 4)

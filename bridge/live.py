@@ -6,11 +6,18 @@ frame as the preview shape key (bridge/preview.py's key, owned by the extension)
 writes the bake: only Solve and Bake does, so no edit made live can replace work. Outside Object
 Mode it writes nothing (as the mode preview); the pose shows once the body is back in Object Mode.
 
-Flow (main thread unless said): ``on_depsgraph_update`` notes which bodies' handles changed and
-when; a ``bpy.app.timers`` callback (``_tick``) waits ``DEBOUNCE`` seconds of quiet, gathers the
-problem (bpy), runs ``_solve`` on a worker thread (pure numpy) and, when it has finished, shows
-the result. In background mode timers do not run: ``flush`` does the same synchronously (what tests and
+Flow (main thread unless said): ``on_depsgraph_update`` notes which bodies' handles changed; a
+``bpy.app.timers`` callback (``_tick``) gathers the problem (bpy), runs ``_solve`` on a worker
+thread (pure numpy), waits up to ``FOLLOW`` seconds for it and shows the result, or shows it on a
+later tick. One re-solve per body runs at a time; the changes made meanwhile (a drag's many
+mouse moves) make one re-solve after it, so the preview follows a drag about one redraw behind.
+In background mode timers do not run: ``flush`` does the same synchronously (what tests and
 scripts call).
+
+Gathering never sets the scene's frame for a handle that only its own keys move
+(``transforms.curve_world_matrices``): frame_set would put the Empty the artist is dragging back
+on its key. A handle placed otherwise (a parent that moves, a constraint) waits for the move to
+end (``transforms.ArtistMoving``).
 
 Coarser than Solve and Bake, to keep up with the mouse: a warm re-solve runs at most
 ``LIVE_GN_STEPS`` Gauss-Newton steps, no penalty continuation, and no material optimisation (the
@@ -24,11 +31,12 @@ import time
 import numpy as np
 
 from ..solver import spacetime
-from . import bake, preview, scene, spacetime_inputs
+from . import bake, preview, scene, spacetime_inputs, transforms
 from .scene import InputError
 
-DEBOUNCE = 0.05       # s of quiet after the last change before a re-solve starts
 POLL = 0.02           # s between timer ticks while something is pending or running
+FOLLOW = 0.03         # s a tick waits for the re-solve it started (a warm one takes ~5-40 ms),
+#                       so its pose shows on the next redraw rather than a timer tick later
 LIVE_GN_STEPS = 3     # GN steps of a warm re-solve (a small handle move converges in 1-2)
 
 
@@ -179,12 +187,12 @@ def on_depsgraph_update(blender_scene, depsgraph):
 
 
 def request(name):
-    """Ask for a re-solve of body `name` after the debounce."""
+    """Ask for a re-solve of body `name` (on the next timer tick, or after the running one)."""
     _PENDING[name] = time.monotonic()
     if not _TIMER_ON[0] and not _background():
         import bpy
         _TIMER_ON[0] = True
-        bpy.app.timers.register(_tick, first_interval=DEBOUNCE)
+        bpy.app.timers.register(_tick, first_interval=0.0)
 
 
 def _background():
@@ -219,6 +227,9 @@ def _start(name, synchronous):
         return
     try:
         job = spacetime_inputs.gather(obj, blender_scene)
+    except transforms.ArtistMoving:     # a handle only the scene can place: once the move ends
+        _PENDING[name] = time.monotonic()
+        return
     except InputError as error:
         ERRORS[name] = f"Live: {error}"
         return
@@ -251,19 +262,24 @@ def _finish(name, box, job):
         ERRORS[name] = f"Live: {error}"
 
 
-def _due(now):
-    return [n for n, t in _PENDING.items() if now - t >= DEBOUNCE and n not in _RUNNING]
-
-
-def _tick():
-    """Timer: collect finished workers, start due re-solves; keeps running while busy."""
+def _collect_finished():
     for name, (thread, box, job) in list(_RUNNING.items()):
         if not thread.is_alive():
             del _RUNNING[name]
             _finish(name, box, job)
-    for name in _due(time.monotonic()):
+
+
+def _tick():
+    """Timer: collect finished workers, start pending re-solves (one per body at a time), wait
+    briefly for them; keeps running while busy."""
+    _collect_finished()
+    for name in [n for n in _PENDING if n not in _RUNNING]:
         del _PENDING[name]
         _start(name, synchronous=False)
+    deadline = time.monotonic() + FOLLOW
+    for thread, _, _ in list(_RUNNING.values()):
+        thread.join(max(0.0, deadline - time.monotonic()))
+    _collect_finished()
     if _RUNNING or _PENDING:
         return POLL
     _TIMER_ON[0] = False

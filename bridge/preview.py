@@ -62,10 +62,20 @@ def in_object_mode(obj):
     return False
 
 
+def under_bake(obj):
+    """Whether a shape-key bake is in place: its keys add to the preview's, so on a baked frame
+    the mesh would show their sum. The mode preview then does not show (the panel says so). A
+    Mesh Cache bake is no obstacle: it is hidden while the preview shows."""
+    return obj.type == 'MESH' and bool(bake.owned_keys(obj, "bake"))
+
+
 def show(obj):
     body = prepared.for_object(obj)
     if body is None:
         return False  # not prepared for this mesh; the panel says so
+    if under_bake(obj):
+        hide(obj)
+        return False  # the panel says why
     try:
         scene.require_single_user(obj)
     except InputError:

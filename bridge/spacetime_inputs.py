@@ -44,7 +44,8 @@ RIG_TIGHTNESS = 100.0
 def status_sentence(result):
     """(converged, one line) of a ``SpaceTimeResult`` for the panel and the command line."""
     if result.converged:
-        return True, f"Solve converged ({result.reason})"
+        said = "" if result.reason in ("", "converged") else f" ({result.reason})"
+        return True, f"Solve converged{said}"
     return False, f"Solve did not converge: {result.reason}"
 
 

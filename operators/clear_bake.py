@@ -1,7 +1,7 @@
 """Remove the body's bake (its RS Bake shape keys and their keyframes, or its Mesh Cache)."""
 import bpy
 
-from ..bridge import bake, scene
+from ..bridge import bake, preview, scene
 from ..bridge.scene import InputError
 
 
@@ -24,6 +24,8 @@ class RS_ELASTIC_OT_clear_bake(bpy.types.Operator):
         if removed is None:
             self.report({'WARNING'}, f"'{obj.name}' has no bake")
             return {'CANCELLED'}
+        if not obj.rs_elastic.live:     # the mode preview shows again, on its own
+            preview.refresh(obj)
         self.report({'INFO'}, f"Removed {removed} baked frames from '{obj.name}'" if removed
                     else f"Removed the bake of '{obj.name}' (its .pc2 file was missing)")
         return {'FINISHED'}

@@ -8,8 +8,9 @@ on the main thread and run as a second job, within the same operator.
 import bpy
 import numpy as np
 
-from ..bridge import bake, jobs, scene, simulation_inputs, stage_cache, writes
+from ..bridge import bake, jobs, preview, scene, simulation_inputs, stage_cache, writes
 from ..bridge.scene import InputError
+from .solve_spacetime import forget_solve
 
 ENERGY, SIMULATE = "energy", "simulate"
 MAX_ENERGY_JOBS = 3     # the material may change during a training: retrain, but not forever
@@ -82,6 +83,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
             with writes.transaction(f"Baking '{obj.name}'") as transaction:
                 writes.keep_id_properties(transaction, obj.rs_elastic, [stage_cache.ENERGY_RECORD])
                 active = bake.write_bake(obj, inputs.frames, poses)
+                forget_solve(obj, transaction)      # its words were about the bake replaced
                 simulation_inputs.record_energy(obj)
         except InputError as exc:
             self.report({'ERROR'}, str(exc))
@@ -89,6 +91,8 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
+        if not obj.rs_elastic.live:     # the mode preview would add to the bake: it steps aside
+            preview.refresh(obj)
         self.report({'INFO'}, f"'{obj.name}': simulated and baked frames "
                               f"{inputs.frames[0]}–{inputs.frames[-1]}")
         return {'FINISHED'}

@@ -1,7 +1,7 @@
 """Solve a space-time edit of the active body and bake it into shape keys."""
 import bpy
 
-from ..bridge import bake, jobs, spacetime_inputs, writes
+from ..bridge import bake, jobs, preview, spacetime_inputs, writes
 from ..bridge.scene import InputError
 
 
@@ -34,6 +34,8 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
         if active:
             self.report({'WARNING'}, f"Shape keys {', '.join(active)} are not at 0 and add on "
                                      "top of the bake")
+        if not obj.rs_elastic.live:     # the mode preview would add to the bake: it steps aside
+            preview.refresh(obj)
         worst = max((h.residual for h in settings.handles), default=-1.0)
         self.report({'INFO'}, f"'{obj.name}': baked frames {inputs.frames[0]}–{inputs.frames[-1]}"
                               f" in {result.iterations} iterations"
@@ -44,6 +46,21 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
 def _record_solve(obj, inputs, result, transaction):
     """Each handle's residual and the objective's history, for the panel (undone with the bake)."""
     settings = obj.rs_elastic
+    forget_solve(obj, transaction)
+    scale = inputs.world_scale          # positive, a mirrored object's too
+    for index, rows in inputs.track_slices:
+        settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
+    for _, _, objective in result.history:
+        settings.solve_history.add().value = float(objective)
+
+
+CLASSES = (RS_ELASTIC_OT_solve_spacetime,)
+
+
+def forget_solve(obj, transaction):
+    """Clear the last solve's residuals and objectives (kept for `transaction`'s undo): the
+    panel shows them only while that solve's bake is in place."""
+    settings = obj.rs_elastic
     for handle in settings.handles:
         writes.keep_values(transaction, handle, ["residual"])
     history = [item.value for item in settings.solve_history]
@@ -53,14 +70,6 @@ def _record_solve(obj, inputs, result, transaction):
         for value in history:
             settings.solve_history.add().value = value
     transaction.undo(undo)
-    scale = inputs.world_scale          # positive, a mirrored object's too
     for handle in settings.handles:
         handle.residual = -1.0
-    for index, rows in inputs.track_slices:
-        settings.handles[index].residual = scale * float(result.handle_residuals[rows].max())
     settings.solve_history.clear()
-    for _, _, objective in result.history:
-        settings.solve_history.add().value = float(objective)
-
-
-CLASSES = (RS_ELASTIC_OT_solve_spacetime,)

@@ -21,7 +21,9 @@ class RS_ELASTIC_PT_preview(RSElasticPanel, bpy.types.Panel):
         layout.prop(settings, "preview_method", expand=True)
         layout.prop(settings, "preview_mode")
         layout.prop(settings, "preview_amplitude", slider=True)
-        if settings.preview_enabled and not preview.is_shown(obj):
+        if settings.preview_enabled and not settings.live and preview.under_bake(obj):
+            layout.label(text="Clear Bake to preview the modes", icon='INFO')
+        elif settings.preview_enabled and not preview.is_shown(obj):
             layout.label(text="Prepare the body to preview its modes", icon='ERROR')
 
 

@@ -63,7 +63,10 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             layout.label(text=live_status, icon='PREVIEW_RANGE')
         draw_bake_buttons(layout, context.active_object,
                           frame_count(context.scene, context.active_object.rs_elastic))
-        status = spacetime_inputs.LAST_STATUS.get(obj.name)
+        # The solve's words only while its bake is in place: a simulation's bake or an undo
+        # takes its objectives away (they live on the object, undone with the bake).
+        status = (spacetime_inputs.LAST_STATUS.get(obj.name) if len(settings.solve_history)
+                  else None)
         if status is not None:
             converged, text = status
             col = layout.column(align=True)

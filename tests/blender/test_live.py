@@ -1,5 +1,4 @@
 """Live re-solve: moving a handle's Empty re-solves into the preview, never into the bake."""
-import time
 
 import numpy as np
 import bpy
@@ -74,11 +73,11 @@ def test_live_without_a_bake_shows_the_solve_and_off_restores_the_mesh(ext):
     bpy.context.view_layer.update()          # the edit is evaluated (and noticed) before Live
     user = fingerprint(obj)
     obj.rs_elastic.live = True               # queued; drive the timer's worker path by hand
-    time.sleep(live.DEBOUNCE)
-    assert live._tick() == live.POLL         # started the worker thread
-    thread, _, _ = live._RUNNING[obj.name]
-    thread.join(timeout=60)
-    assert live._tick() is None, (live._PENDING, live._RUNNING, live.ERRORS)
+    if live._tick() is not None:             # started the worker thread, still running
+        thread, _, _ = live._RUNNING[obj.name]
+        thread.join(timeout=60)
+        assert live._tick() is None, (live._PENDING, live._RUNNING, live.ERRORS)
+    assert not live._RUNNING and not live._PENDING
     assert live.status(obj).startswith("Live: cold"), live.status(obj)
     assert ext.bridge.bake.bake_frames(obj) == []          # Live never bakes
     bpy.context.scene.frame_set(30)
