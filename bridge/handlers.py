@@ -14,6 +14,7 @@ def _bakes_before_save(filepath="", *_args):
     # A file saved under a new folder or name gets its own copy of each Mesh Cache bake, played
     # by its modifiers, so clearing a bake in one .blend never breaks another's.
     mesh_cache.before_save(filepath)
+    stage_cache.note_folders_before_save()
 
 
 @persistent

@@ -35,6 +35,7 @@ stats = collections.Counter()
 
 _MEMORY = collections.OrderedDict()   # cache key -> (value, parent digest)
 _MEMORY_LIMIT = 16
+_BEFORE_SAVE = []    # the cache folders of the file as it was before the save under way
 
 TET_MESH = "tet_mesh"                 # obj.rs_elastic[TET_MESH]: {"key", "nodes", "tets"}
 PREPARED_INPUTS = "prepared_inputs"   # obj.rs_elastic[PREPARED_INPUTS]: the fingerprint at Prepare
@@ -146,9 +147,15 @@ def prune(obj):
                 pass
 
 
+def note_folders_before_save():
+    """save_pre: remember where the file's stages are now, for `persist` after the save."""
+    _BEFORE_SAVE[:] = cache_dirs()
+
+
 def persist(obj):
     """Make sure the object's prepared stages are in its primary cache folder (after a file is
-    saved under a new name its cache moves next to it)."""
+    saved under a new name its cache moves next to it: copied from where the file kept it before
+    the save, or from the temporary folder)."""
     folders = cache_dirs()
     for stage, key in _stage_keys(obj.rs_elastic):
         if not key:
@@ -156,7 +163,8 @@ def persist(obj):
         target = cache_file(folders[0], obj.name, stage, key)
         if cache.stored_key(target) == key:
             continue
-        sources = [cache_file(folder, obj.name, stage, key) for folder in folders[1:]]
+        sources = [cache_file(folder, obj.name, stage, key)
+                   for folder in folders[1:] + _BEFORE_SAVE]
         source = next((path for path in sources if cache.stored_key(path) == key), None)
         if source is None:
             continue     # not on disk: rebuilt when next used

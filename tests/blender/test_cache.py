@@ -64,6 +64,27 @@ def test_saved_file_keeps_its_cache_in_blendcache_folder_and_a_new_process_reuse
     assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == files
 
 
+def test_a_save_as_to_another_folder_takes_the_cache_along_at_once(ext, tmp_path):
+    """The stages go to the new file's blendcache folder with the save (from the folder the file
+    kept them in before), not later when an operator happens to load them."""
+    obj = prepare_bar(ext)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a" / "shot.blend"))
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}       # the cache now lives in a/
+    first = sorted(p.name for p in (tmp_path / "a" / "blendcache_shot").iterdir())
+    assert len(first) == 3
+    temp = ext.bridge.stage_cache.cache_dirs()[-1]       # as in a new session: only a/ has them
+    for name in first:
+        pathlib.Path(temp, name).unlink(missing_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "b" / "take2.blend"))
+    folder = tmp_path / "b" / "blendcache_take2"
+    assert sorted(p.name for p in folder.iterdir()) == first
+    settings = obj.rs_elastic
+    assert ext.bridge.stage_cache.cache.stored_key(
+        str(folder / f"Bar.modes.{settings.prepared_key[:16]}.npz")) == settings.prepared_key
+
+
 def test_stale_cache_is_rebuilt_per_stage(ext):
     obj = prepare_bar(ext)
     stats = ext.bridge.stage_cache.stats
