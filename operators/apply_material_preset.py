@@ -1,7 +1,9 @@
 """Set the active body's material from a named preset."""
 import bpy
 
+from ..bridge import scene
 from ..bridge.presets import MATERIAL_PRESETS
+from ..bridge.scene import InputError
 
 
 class RS_ELASTIC_OT_apply_material_preset(bpy.types.Operator):
@@ -20,6 +22,11 @@ class RS_ELASTIC_OT_apply_material_preset(bpy.types.Operator):
         return context.active_object is not None and context.active_object.type == 'MESH'
 
     def execute(self, context):
+        try:
+            scene.require_local(context.active_object)
+        except InputError as exc:       # a linked body's settings are not this file's to set
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
         _, E, nu, rho = MATERIAL_PRESETS[self.preset]
         settings = context.active_object.rs_elastic
         settings.youngs_modulus, settings.poisson_ratio, settings.density = E, nu, rho

@@ -81,7 +81,7 @@ CASES = [("linked object", linked_object, LINKED_OBJECT),
 OPERATORS = [("prepare", {}), ("tetrahedralize", {}), ("simulate", {}), ("solve_spacetime", {}),
              ("clear_bake", {}), ("keep_take", {}), ("add_handle", dict(vertex_group="Pin")),
              ("interpolate_shape_keys", dict(key_from="Basis", key_to="Key 1")),
-             ("follow_bones", {})]
+             ("follow_bones", {}), ("apply_material_preset", dict(preset="RUBBER"))]
 
 
 @pytest.mark.parametrize("make, message", [pytest.param(*case[1:], id=case[0]) for case in CASES])
