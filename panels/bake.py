@@ -2,7 +2,7 @@
 they write (Bake To, Keep Bake as Take, Clear Bake), drawn once."""
 import bpy
 
-from ..bridge import estimates, mesh_cache
+from ..bridge import bake, estimates, mesh_cache
 from .body import RSElasticPanel, drawn_body
 
 
@@ -49,6 +49,9 @@ class RS_ELASTIC_PT_bake(RSElasticPanel, bpy.types.Panel):
             col.label(text=f"Shape keys would add {size / 2 ** 20:.0f} MB", icon='INFO')
             col.label(text="to the .blend: Mesh Cache keeps", icon='BLANK1')
             col.label(text="them on disk", icon='BLANK1')
+        frames = bake.bake_frames(obj)    # whichever made it: a solve or a simulation
+        if frames:
+            layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')
         row = layout.row(align=True)
         row.operator("rs_elastic.keep_take", icon='PINNED')
         row.operator("rs_elastic.clear_bake", icon='TRASH')

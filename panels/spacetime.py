@@ -1,7 +1,7 @@
-"""Space-time editing: handles, the solve and its bake."""
+"""Space-time editing: handles, the solve and its words (the bake's rows are in the Bake panel)."""
 import bpy
 
-from ..bridge import bake, live, spacetime_inputs
+from ..bridge import live, spacetime_inputs
 from .body import RSElasticPanel, drawn_body, draw_lines
 
 
@@ -64,9 +64,6 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             for i, line in enumerate(text.split("; ")):
                 draw_lines(layout, line, ('CHECKMARK' if converged else 'ERROR') if i == 0
                            else 'BLANK1')
-        frames = bake.bake_frames(obj)
-        if frames:
-            layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')
         if len(settings.solve_history):
             col = layout.column(align=True)
             col.label(text="Objective per iteration:")

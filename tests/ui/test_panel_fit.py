@@ -1,5 +1,6 @@
 """At the sidebar's default width every label every panel draws fits, for an unprepared, a
-prepared and solved, and a stale body (see panel_fit for how a label is measured)."""
+prepared and solved, and a stale body, and with a handle's Empty active (see panel_fit for how a
+label is measured)."""
 from panel_fit import cut_labels
 from panel_sources import PANELS
 from test_panel_words import SOLVE, SOLVED
@@ -39,4 +40,6 @@ def test_every_label_fits_at_the_default_sidebar_width(gui):
     cut |= _check(gui, "prepared")
     gui.run("bpy.context.active_object.rs_elastic.youngs_modulus *= 2.0")
     cut |= _check(gui, "stale")
+    gui.run("h.make_active(bpy.context.active_object.rs_elastic.handles[0].empty)")
+    cut |= _check(gui, "handle's Empty active")
     assert not cut, f"labels cut at the default sidebar width: {cut}"
