@@ -140,8 +140,8 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                ('FUNG', "Fung", "Exponential stiffening, like soft tissue")],
         description="How the body resists strain in the simulation")
     fung_stiffening: FloatProperty(
-        name="Fung Stiffening", default=10.0, min=0.1, soft_max=100.0,
-        description="How soon the Fung material stiffens: around a strain of 1/sqrt(this)")
+        name="Stiffening", default=10.0, min=0.1, soft_max=100.0,
+        description="Fung stiffening: how soon the Fung material stiffens: around a strain of 1/sqrt(this)")
     integrator: EnumProperty(
         name="Integrator", default='NEWMARK',
         items=[('NEWMARK', "Newmark", "Average acceleration (trapezoidal rule): keeps the energy, "
@@ -164,12 +164,12 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         description="Collide with objects that have a Collision modifier (its Thickness Outer, "
                     "Friction and Damping apply)")
     collider_collection: PointerProperty(
-        type=bpy.types.Collection, name="Collider Collection",
+        type=bpy.types.Collection, name="Colliders",
         description="Only collide with the colliders in this collection (empty: every collider "
                     "in the scene)")
     contact_samples: IntProperty(
-        name="Contact Samples", default=256, min=8, max=4096, soft_max=1024,
-        description="Surface points that feel the colliders; more catch smaller features and cost "
+        name="Samples", default=256, min=8, max=4096, soft_max=1024,
+        description="Contact samples: surface points that feel the colliders; more catch smaller features and cost "
                     "more per step")
 
     # --- Results, written by the operators -----------------------------------------------------------

@@ -1,7 +1,40 @@
 """The parent panel: which body the settings below belong to."""
+import textwrap
+
 import bpy
 
-from ..bridge import mesh_cache, staleness
+from ..bridge import constraints, staleness
+
+WRAP = 34      # characters: about 215 px of the UI font at the default sidebar width
+
+
+def body_object(context):
+    """The body the panels show: the active mesh, or the mesh whose handle the active Empty is."""
+    obj = context.active_object
+    if obj is not None and obj.type == 'EMPTY':
+        return constraints.body_of_handle(obj, context.scene)
+    return obj if obj is not None and obj.type == 'MESH' else None
+
+
+def draw_lines(layout, text, icon='NONE'):
+    """A sentence as short lines (a line per clause, broken after ': ', each wrapped at
+    WRAP characters), so it fits the sidebar's default width; the lines after the first are
+    indented under the icon."""
+    lines = [line for clause in text.replace(": ", ":\n").split("\n")
+             for line in textwrap.wrap(clause, WRAP)]
+    col = layout.column(align=True)
+    for i, line in enumerate(lines):
+        col.label(text=line, icon=icon if i == 0 else ('BLANK1' if icon != 'NONE' else 'NONE'))
+
+
+def drawn_body(layout, context):
+    """The body a panel draws into `layout`; with a handle's Empty active, the layout's buttons
+    act on the body (the operators read the active object)."""
+    obj = body_object(context)
+    if obj is not None and obj is not context.active_object:
+        layout.context_pointer_set("active_object", obj)
+        layout.context_pointer_set("object", obj)
+    return obj
 
 
 class RSElasticPanel:
@@ -11,39 +44,7 @@ class RSElasticPanel:
 
     @classmethod
     def poll(cls, context):
-        obj = context.active_object
-        return obj is not None and obj.type == 'MESH'
-
-
-def draw_frame_range(layout, settings):
-    """The frame-range settings shared by space-time solves and simulations."""
-    layout.prop(settings, "use_scene_range")
-    if not settings.use_scene_range:
-        row = layout.row(align=True)
-        row.prop(settings, "frame_start")
-        row.prop(settings, "frame_end")
-
-
-def frame_count(scene, settings):
-    """Frames in the range a solve or simulation bakes."""
-    if settings.use_scene_range:
-        return scene.frame_end - scene.frame_start + 1
-    return settings.frame_end - settings.frame_start + 1
-
-
-def draw_bake_buttons(layout, obj=None, frames=0):
-    """Bake To, a Mesh Cache suggestion when a shape-key bake of ``frames`` would be large,
-    and Keep Bake as Take / Clear Bake."""
-    if obj is not None:
-        settings = obj.rs_elastic
-        layout.prop(settings, "bake_to")
-        size = mesh_cache.shape_key_bytes(frames, len(obj.data.vertices))
-        if settings.bake_to == 'KEYS' and size > mesh_cache.SUGGEST_BYTES:
-            layout.label(text=f"Shape keys would add {size / 2 ** 20:.0f} MB to the .blend: "
-                              "Mesh Cache keeps them on disk", icon='INFO')
-    row = layout.row(align=True)
-    row.operator("rs_elastic.keep_take", icon='PINNED')
-    row.operator("rs_elastic.clear_bake", icon='TRASH')
+        return body_object(context) is not None
 
 
 class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
@@ -54,8 +55,8 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         return True
 
     def draw(self, context):
-        obj = context.active_object
-        if obj is None or obj.type != 'MESH':
+        obj = drawn_body(self.layout, context)
+        if obj is None:
             self.layout.label(text="Select a mesh object", icon='INFO')
             return
         settings = obj.rs_elastic
@@ -64,13 +65,15 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
         if stale:
             row.label(text="Stale", icon='ERROR')
-            self.layout.label(text=stale[0].upper() + stale[1:])
+            draw_lines(self.layout, stale[0].upper() + stale[1:])
         elif settings.is_prepared:
             row.label(text="Prepared", icon='CHECKMARK')
         elif settings.tets_key:
             row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
         else:
             row.label(text="Not prepared", icon='DOT')
+        if obj is not context.active_object:
+            self.layout.label(text=f"Handle of {obj.name}", icon='EMPTY_AXIS')
         self.layout.operator("rs_elastic.write_farm_job_type", icon='NETWORK_DRIVE')
 
 

@@ -1,7 +1,7 @@
 """RS interpolation of shape keys."""
 import bpy
 
-from .body import RSElasticPanel
+from .body import RSElasticPanel, drawn_body
 
 
 class RS_ELASTIC_PT_interpolate(RSElasticPanel, bpy.types.Panel):
@@ -10,7 +10,7 @@ class RS_ELASTIC_PT_interpolate(RSElasticPanel, bpy.types.Panel):
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        obj = context.active_object
+        obj = drawn_body(self.layout, context)
         layout = self.layout
         if not obj.rs_elastic.is_prepared:
             layout.label(text="Prepare the body first", icon='INFO')

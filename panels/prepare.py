@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import armature
-from .body import RSElasticPanel
+from .body import RSElasticPanel, drawn_body, draw_lines
 
 
 class RS_ELASTIC_UL_modes(bpy.types.UIList):
@@ -23,23 +23,28 @@ class RS_ELASTIC_PT_material(RSElasticPanel, bpy.types.Panel):
     bl_parent_id = "RS_ELASTIC_PT_body"
 
     def draw(self, context):
-        obj = context.active_object
+        obj = drawn_body(self.layout, context)
         settings = obj.rs_elastic
         layout = self.layout
         layout.menu("RS_ELASTIC_MT_material_presets", icon='PRESET')
-        layout.use_property_split = True
-        layout.prop(settings, "youngs_modulus", text="Young's Modulus (Pa)")
-        layout.prop_search(settings, "stiffness_group", obj, "vertex_groups")
-        layout.prop(settings, "stiffness_ratio")
-        layout.prop(settings, "poisson_ratio")
-        layout.prop(settings, "density", text="Density (kg/m³)")
-        if armature.is_rigged(obj):       # on a rig the pins are what follows the bones
-            layout.prop_search(settings, "pin_group", obj, "vertex_groups", text="Follow Rig")
+        # 'Name: value' fields and labels above the group fields: the names fit the sidebar
+        # (the units are in the tooltips).
+        col = layout.column(align=True)
+        col.prop(settings, "youngs_modulus")
+        col.prop(settings, "poisson_ratio")
+        col.prop(settings, "density")
+        col = layout.column(align=True)
+        col.label(text="Stiffness Group:")
+        col.prop_search(settings, "stiffness_group", obj, "vertex_groups", text="")
+        col.prop(settings, "stiffness_ratio")
+        rigged = armature.is_rigged(obj)  # on a rig the pins are what follows the bones
+        col = layout.column(align=True)
+        col.label(text="Follow Rig:" if rigged else "Pin Group:")
+        col.prop_search(settings, "pin_group", obj, "vertex_groups", text="")
+        if rigged:
             layout.operator("rs_elastic.follow_bones", icon='BONE_DATA')
-            layout.label(text=f"Rigged by '{armature.armature_modifier(obj).object.name}': "
-                              "the rest is free flesh", icon='ARMATURE_DATA')
-        else:
-            layout.prop_search(settings, "pin_group", obj, "vertex_groups")
+            draw_lines(layout, f"Rigged by '{armature.armature_modifier(obj).object.name}': "
+                               "the rest is free flesh", 'ARMATURE_DATA')
 
 
 class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
@@ -47,13 +52,13 @@ class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
     bl_parent_id = "RS_ELASTIC_PT_body"
 
     def draw(self, context):
-        settings = context.active_object.rs_elastic
+        obj = drawn_body(self.layout, context)
+        settings = obj.rs_elastic
         layout = self.layout
         row = layout.row()
         row.prop(settings, "num_modes")
         layout.operator("rs_elastic.prepare", icon='PLAY')
-        col = layout.column(align=True)
-        col.use_property_split = True
+        col = layout.column(align=True)     # 'Name: value' fields: the names fit the sidebar
         col.prop(settings, "basis_size")
         col.prop(settings, "cubature_tets")
         col.prop(settings, "cubature_tolerance")
@@ -61,8 +66,9 @@ class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
         if settings.is_prepared:
             layout.label(text=f"MNF {settings.mnf:.4g} rad/s")
             if settings.reduced_key:
-                layout.label(text=f"Reduced basis {settings.reduced_basis_count}, "
-                                  f"cubature {settings.cubature_count} tets")
+                col = layout.column(align=True)
+                col.label(text=f"Reduced basis {settings.reduced_basis_count}")
+                col.label(text=f"Cubature {settings.cubature_count} tets")
             layout.template_list("RS_ELASTIC_UL_modes", "", settings, "mode_results",
                                  settings, "preview_mode", rows=4)
 

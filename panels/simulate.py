@@ -1,8 +1,9 @@
-"""Simulation: material model, damping, time integration and the Simulate operator."""
+"""Simulation: material model, time integration, collisions and the Simulate operator (the frame
+range, damping and bake it shares with a space-time solve are in the Bake panel)."""
 import bpy
 
-from ..bridge import bodies, colliders, estimates
-from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range, frame_count
+from ..bridge import bodies, colliders
+from .body import RSElasticPanel, drawn_body, draw_lines
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -10,28 +11,21 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
     bl_parent_id = "RS_ELASTIC_PT_body"
 
     def draw(self, context):
-        settings = context.active_object.rs_elastic
+        obj = drawn_body(self.layout, context)
+        settings = obj.rs_elastic
         layout = self.layout
         layout.use_property_split = True
         layout.prop(settings, "material_model")
         if settings.material_model == 'FUNG':
             layout.prop(settings, "fung_stiffening")
         if settings.is_prepared and settings.material_model != 'LINEAR':
-            layout.label(text=energy_label(context.active_object))
-        layout.prop(settings, "damping_mass")
-        layout.prop(settings, "damping_stiffness")
-        frequencies = settings.frequencies
-        if frequencies and frequencies[0] > 0.0:
-            layout.label(text=damping_label(settings, frequencies[0]))
+            draw_lines(layout, energy_label(obj), 'INFO')
         layout.prop(settings, "integrator")
         layout.prop(settings, "substeps")
         layout.prop(settings, "start_settled")
-        draw_collisions(layout, context, settings)
-        draw_frame_range(layout, settings)
+        draw_collisions(layout, context, obj)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
-        draw_bake_buttons(layout, context.active_object,
-                          frame_count(context.scene, context.active_object.rs_elastic))
 
 
 def energy_label(obj):
@@ -41,22 +35,17 @@ def energy_label(obj):
     return "Energy cubature: trained when you simulate (Esc cancels)"
 
 
-def draw_collisions(layout, context, settings):
+def draw_collisions(layout, context, obj):
     """The collision settings and the colliders the next simulation will see."""
+    settings = obj.rs_elastic
     layout.prop(settings, "use_collisions")
     if not settings.use_collisions:
         return
     layout.prop(settings, "collider_collection")
     layout.prop(settings, "contact_samples")
-    names = [obj.name for obj in colliders.collider_objects(context.active_object, context.scene)]
-    text = f"Colliders: {', '.join(names)}" if names else "No object with a Collision modifier"
+    names = [other.name for other in colliders.collider_objects(obj, context.scene)]
+    text = f"Colliders: {', '.join(names)}" if names else "No Collision modifier"
     layout.label(text=text, icon='MOD_PHYSICS')
-
-
-def damping_label(settings, frequency_hz):
-    """The Rayleigh damping as a damping ratio at the first mode (frequency in Hz)."""
-    zeta = estimates.first_mode_damping_ratio(settings, frequency_hz)
-    return f"Damping ratio at mode 1 ({frequency_hz:.3g} Hz): {100.0 * zeta:.3g} %"
 
 
 CLASSES = (RS_ELASTIC_PT_simulate,)

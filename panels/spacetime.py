@@ -1,19 +1,18 @@
-"""Space-time editing: handles, the solve and its bake."""
+"""Space-time editing: handles, the solve and its words (the bake's rows are in the Bake panel)."""
 import bpy
 
-from ..bridge import bake, live, spacetime_inputs
-from .body import RSElasticPanel, draw_bake_buttons, draw_frame_range, frame_count
+from ..bridge import live, spacetime_inputs
+from .body import RSElasticPanel, drawn_body, draw_lines
 
 
 class RS_ELASTIC_UL_handles(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
         empty = item.empty
         deleted = empty is None or context.scene.objects.get(empty.name) is None
+        # The Empty and its residual; the vertex group and the options are in the box below.
         row = layout.row(align=True)
         row.label(text=empty.name if empty is not None else "(deleted)",
                   icon='ERROR' if deleted else 'EMPTY_AXIS')
-        row.label(text=item.vertex_group, icon='GROUP_VERTEX')
-        row.prop(item, "orientation", text="", icon='ORIENTATION_GIMBAL')
         if item.residual >= 0.0:
             row.label(text=f"{item.residual:.2g} m")
 
@@ -23,7 +22,7 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
     bl_parent_id = "RS_ELASTIC_PT_body"
 
     def draw(self, context):
-        obj = context.active_object
+        obj = drawn_body(self.layout, context)
         settings = obj.rs_elastic
         layout = self.layout
         row = layout.row()
@@ -37,45 +36,34 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             box = layout.box()
             box.prop(handle, "empty")
             box.prop_search(handle, "vertex_group", obj, "vertex_groups")
-            row = box.row()
-            row.prop(handle, "follow")
-            row.prop(handle, "weight")
+            box.prop(handle, "orientation", icon='ORIENTATION_GIMBAL')
+            box.prop(handle, "follow")
+            box.prop(handle, "weight")
 
-        layout.use_property_split = True
-        draw_frame_range(layout, settings)
-        layout.prop(settings, "tightness")
-        layout.prop(settings, "damping_mass")
-        layout.prop(settings, "damping_stiffness")
-        layout.prop(settings, "iterations")
+        col = layout.column(align=True)     # 'Name: value' fields: the names fit the sidebar
+        col.prop(settings, "tightness")
+        col.prop(settings, "iterations")
         layout.prop(settings, "optimize_material")
         if settings.optimize_material:
             layout.prop(settings, "material_freedom")
         layout.prop(settings, "use_take")
         if settings.use_take:
             layout.prop(settings, "take_weight")
-
-        layout.use_property_split = False
         row = layout.row(align=True)
         row.prop(settings, "live", toggle=True, icon='REC')
         row.operator("rs_elastic.solve_spacetime", icon='PLAY')
         live_status = live.status(obj) if settings.live else None
         if live_status is not None:
             layout.label(text=live_status, icon='PREVIEW_RANGE')
-        draw_bake_buttons(layout, context.active_object,
-                          frame_count(context.scene, context.active_object.rs_elastic))
         # The solve's words only while its bake is in place: a simulation's bake or an undo
         # takes its objectives away (they live on the object, undone with the bake).
         status = (spacetime_inputs.LAST_STATUS.get(obj.name) if len(settings.solve_history)
                   else None)
         if status is not None:
             converged, text = status
-            col = layout.column(align=True)
             for i, line in enumerate(text.split("; ")):
-                col.label(text=line, icon=('CHECKMARK' if converged else 'ERROR') if i == 0
-                          else 'BLANK1')
-        frames = bake.bake_frames(obj)
-        if frames:
-            layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')
+                draw_lines(layout, line, ('CHECKMARK' if converged else 'ERROR') if i == 0
+                           else 'BLANK1')
         if len(settings.solve_history):
             col = layout.column(align=True)
             col.label(text="Objective per iteration:")

@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import estimates
-from .body import RSElasticPanel
+from .body import RSElasticPanel, drawn_body, draw_lines
 
 
 class RS_ELASTIC_PT_tet_mesh(RSElasticPanel, bpy.types.Panel):
@@ -10,19 +10,19 @@ class RS_ELASTIC_PT_tet_mesh(RSElasticPanel, bpy.types.Panel):
     bl_parent_id = "RS_ELASTIC_PT_body"
 
     def draw(self, context):
-        settings = context.active_object.rs_elastic
+        obj = drawn_body(self.layout, context)
+        settings = obj.rs_elastic
         layout = self.layout
-        layout.use_property_split = True
-        layout.prop(settings, "edge_length")
-        layout.prop(settings, "envelope")
-        layout.prop(settings, "proxy_triangles")
-        layout.prop(settings, "mesher_time_limit")
-        obj = context.active_object
+        col = layout.column(align=True)     # 'Name: value' fields: the names fit the sidebar
+        col.prop(settings, "edge_length")
+        col.prop(settings, "envelope")
+        col.prop(settings, "proxy_triangles")
+        col.prop(settings, "mesher_time_limit")
         if obj.data.polygons:
             text, over = estimates.mesher_line(obj, settings)
-            layout.label(text=text, icon='ERROR' if over else 'TIME')
+            draw_lines(layout, text, 'ERROR' if over else 'TIME')
             if over:
-                layout.label(text="Over the Time Limit: a new tet mesh is refused")
+                draw_lines(layout, "Over the Time Limit: a new tet mesh is refused")
         layout.operator("rs_elastic.tetrahedralize", icon='MESH_ICOSPHERE')
         if settings.tets_key:
             col = layout.column(align=True)

@@ -78,8 +78,7 @@ def test_panels_show_counts_frequencies_and_mnf(ext):
     # The Rayleigh damping shown as a damping ratio at the first mode: alpha/(2 w1) + beta w1/2.
     w1 = 2.0 * math.pi * s.frequencies[0]
     zeta = s.damping_mass / (2.0 * w1) + s.damping_stiffness * w1 / 2.0
-    assert ("label", f"Damping ratio at mode 1 ({s.frequencies[0]:.3g} Hz): "
-                     f"{100.0 * zeta:.3g} %") in after
+    assert ("label", f"Damping ratio at mode 1: {100.0 * zeta:.3g} %") in after
     assert ("prop", "integrator") in after and ("prop", "substeps") in after
 
 

@@ -14,6 +14,7 @@ class _Recording:
     def _skip(self, *args, **kwargs):
         return None
     prop = prop_search = operator = menu = template_list = separator = progress = _skip
+    context_pointer_set = _skip
 
 
 def panel_labels(idname):

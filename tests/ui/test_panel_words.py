@@ -1,6 +1,7 @@
 """The panels say only what is true of the bake in place, in the real window: a solve's words
 go when a simulation replaces its bake or when the solve is undone (a real ctrl+z), and none
 says a word twice."""
+from panel_sources import PANELS
 from panel_text import labels
 from test_file_and_undo import press
 
@@ -48,3 +49,21 @@ def test_the_panels_drop_a_solves_words_when_its_bake_goes(gui):
     gui.screenshot("solve_undone")
     said = labels(gui, SPACETIME)
     assert not _solve_words(said), f"after the solve was undone: {said}"
+
+
+def _baked_lines(gui):
+    return {panel: [line for line in labels(gui, panel) if line.startswith("Baked frames")]
+            for panel in PANELS}
+
+
+def test_the_baked_frames_line_is_of_the_bake_in_place(gui):
+    gui.run(SOLVED, timeout=300)
+    gui.run(SOLVE, timeout=300)
+    assert sum(_baked_lines(gui).values(), []) == ["Baked frames 1–8"], _baked_lines(gui)
+    gui.run("bpy.context.scene.frame_end = 6")
+    gui.run(SIMULATE, timeout=300)             # the simulation's bake replaces the solve's
+    said = _baked_lines(gui)
+    assert not said[SPACETIME], f"the solve's panel after a simulation replaced its bake: {said}"
+    assert sum(said.values(), []) == ["Baked frames 1–6"], said
+    gui.run("with override():\n    assert bpy.ops.rs_elastic.clear_bake() == {'FINISHED'}")
+    assert not sum(_baked_lines(gui).values(), []), _baked_lines(gui)

@@ -1,0 +1,45 @@
+"""At the sidebar's default width every label every panel draws fits, for an unprepared, a
+prepared and solved, and a stale body, and with a handle's Empty active (see panel_fit for how a
+label is measured)."""
+from panel_fit import cut_labels
+from panel_sources import PANELS
+from test_panel_words import SOLVE, SOLVED
+
+BAR = """
+import blender_helpers as h
+with override():
+    obj = h.make_bar(cuts=3)
+obj.rs_elastic.edge_length = 0.1
+obj.rs_elastic.num_modes = 3
+"""
+# Every optional row shown: a non-linear material, collisions, the preview, Live.
+EVERYTHING_ON = """
+s = bpy.context.active_object.rs_elastic
+s.material_model, s.use_collisions, s.use_take, s.optimize_material = 'FUNG', True, True, True
+s.use_scene_range = False
+"""
+DEFAULT_WIDTH = 291            # Blender 4.3's sidebar at ui_scale 1.04 (this window's)
+
+
+def _check(gui, state):
+    width = gui.run("_, a, _ = view3d(); result = next(r for r in a.regions "
+                    "if r.type == 'UI').width")
+    assert width == DEFAULT_WIDTH, f"the sidebar is {width} px wide, not Blender's default"
+    cut = {panel: texts for panel, texts in cut_labels(gui, PANELS).items() if texts}
+    gui.screenshot(state)
+    return {state: cut} if cut else {}
+
+
+def test_every_label_fits_at_the_default_sidebar_width(gui):
+    gui.run(BAR)
+    cut = _check(gui, "unprepared")
+    gui.run("with override():\n    bpy.ops.wm.read_homefile(use_empty=True, load_ui=False)")
+    gui.run(SOLVED, timeout=300)
+    gui.run(SOLVE, timeout=300)
+    gui.run(EVERYTHING_ON)
+    cut |= _check(gui, "prepared")
+    gui.run("bpy.context.active_object.rs_elastic.youngs_modulus *= 2.0")
+    cut |= _check(gui, "stale")
+    gui.run("h.make_active(bpy.context.active_object.rs_elastic.handles[0].empty)")
+    cut |= _check(gui, "handle's Empty active")
+    assert not cut, f"labels cut at the default sidebar width: {cut}"
