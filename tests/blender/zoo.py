@@ -644,8 +644,14 @@ def scene_state(folders=None):
     return state
 
 
-def state_difference(before, after):
-    """One line naming what changed between two states."""
+# A stage a refused Prepare finished stays in the cache, keyed by its inputs: the Prepare after the
+# fix (pins, say) reuses it. Only these files may appear when Prepare or Tetrahedralize refuse.
+STAGE_FILE = re.compile(r"blendcache_[^/]+/[^/]+\.(tets|modes|reduced|energy)\.[0-9a-f]{16}\.npz")
+
+
+def state_difference(before, after, new_files_allowed=None):
+    """One line naming what changed between two states (new files matching the regular
+    expression `new_files_allowed` aside)."""
     changed = []
     for key in before.keys() | after.keys():
         if key == "files":
@@ -654,8 +660,11 @@ def state_difference(before, after):
             changed.append(key)
     if "files" in before and before["files"] != after.get("files"):
         a, b = before["files"], after["files"]
-        names = sorted({p for p in a.keys() | b.keys() if a.get(p) != b.get(p)})
-        changed.append("files " + ", ".join(names[:4]) + (" …" if len(names) > 4 else ""))
+        names = sorted({p for p in a.keys() | b.keys() if a.get(p) != b.get(p)
+                        if not (new_files_allowed and p not in a
+                                and new_files_allowed.fullmatch(p.split("/", 1)[-1]))})
+        if names:
+            changed.append("files " + ", ".join(names[:4]) + (" …" if len(names) > 4 else ""))
     return "; ".join(sorted(changed))
 
 
@@ -833,7 +842,8 @@ class Run:
             self.draw_panels(found, step)
         self.check_output(found, step, out.text)
         if outcome == "CANCELLED" or outcome.startswith("refused") or outcome == "raised":
-            difference = state_difference(before, scene_state(self.folders))
+            allowed = STAGE_FILE if step.startswith(("prepare", "tetrahedralize")) else None
+            difference = state_difference(before, scene_state(self.folders), allowed)
             if difference:
                 why = "failed with a traceback" if outcome == "raised" else \
                     f"refused ({outcome.removeprefix('refused: ')})"
