@@ -119,3 +119,33 @@ def test_a_fitted_material_survives_its_plain_form(bar):
     for name in take.FittedMaterial.ARRAYS:
         np.testing.assert_array_equal(getattr(back, name), getattr(fitted, name))
     assert (back.first_frame, back.last_frame, back.worst_frame, back.reason) == (1, 150, 42, "why")
+
+
+def test_an_edit_with_the_fitted_material_starts_from_it_and_keeps_its_free_motion(bar):
+    """Use Fitted Material: the space-time problem takes the fitted eigenvalues, damping and
+    sampling; and the fitted material's own continuation, given as the take of an edit with
+    that material, costs no control force (E_f = 0 up to round-off) while the prepared
+    material's does not fit it."""
+    from solver import problems, spacetime
+    body, X, *_ = bar
+    m = body.deformer.num_coords
+    rng = np.random.default_rng(2)
+    r = take.fitted_modes(m)
+    fitted = take.FittedMaterial(body.linear_modes.eigenvalues[:r] * rng.uniform(1.2, 1.6, r),
+                                 np.full(r, 0.1), np.eye(m, r), body.linear_modes.eigenvalues[:r],
+                                 np.full(r, 0.05), np.array([np.full(r, 4.0), np.full(r, 3.9)]),
+                                 1, 40, 1.0 / FPS, "central", 0.0, 1)
+    inputs = take.continue_motion(fitted, 30)
+    settings = problems.SpaceTimeSettings(h=1.0 / FPS, fitted=fitted)
+    frames = list(range(41, 71))
+    problem = problems.spacetime_problem(body, X, frames, take=(frames, list(
+        body.surface_positions(X, inputs))), settings=settings).problem
+    np.testing.assert_array_equal(problem.eigenvalues, fitted.eigenvalues)
+    np.testing.assert_array_equal(problem.sampling, fitted.sampling)
+    Z = inputs[:, :r]
+    own = spacetime.control_energy(Z, fitted.eigenvalues, fitted.damping, fitted.h, "central")
+    prepared = spacetime.control_energy(Z, fitted.prepared_eigenvalues, fitted.prepared_damping,
+                                        fitted.h, "central")
+    print(f"E_f of the fitted material's free motion: own {own:.2e}, prepared {prepared:.2e}")
+    assert own < 1e-12 * prepared
+    assert prepared > 0.0
