@@ -181,6 +181,9 @@ def continue_motion(obj, frame_end):
     if frame_end <= fitted.last_frame:
         raise InputError(f"Continue to frame {frame_end}: it must come after the fit's last "
                          f"frame {fitted.last_frame}")
+    if frame_end - fitted.last_frame > scene.MAX_FRAMES:
+        raise InputError(f"Continue to frame {frame_end}: more than {scene.MAX_FRAMES} frames "
+                         "after the fit")
     body = prepared.require(obj)
     if fitted.sampling.shape[0] != body.deformer.num_coords:
         raise InputError(f"'{obj.name}' was prepared again since Fit Material: fit again")

@@ -12,14 +12,15 @@ class RS_ELASTIC_OT_continue_motion(bpy.types.Operator):
     bl_label = "Continue"
     bl_options = {'REGISTER', 'UNDO'}
 
-    frame_end: bpy.props.IntProperty(name="End", default=250, description="Last frame baked")
+    frame_end: bpy.props.IntProperty(name="End", default=0,
+                                     description="Last frame baked (0: the scene's end frame)")
 
     def execute(self, context):
         obj = scene.active_mesh_or_report(self, context)
         if obj is None:
             return {'CANCELLED'}
         try:
-            frames = take.continue_motion(obj, self.frame_end)
+            frames = take.continue_motion(obj, self.frame_end or context.scene.frame_end)
         except InputError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}

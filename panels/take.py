@@ -27,9 +27,7 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
             return
         layout.prop(settings, "use_fitted_material")
         draw_fitted(layout.box(), fitted)
-        row = layout.row(align=True)
-        row.operator("rs_elastic.continue_motion", icon='FF').frame_end = \
-            context.scene.frame_end
+        layout.operator("rs_elastic.continue_motion", icon='FF')
 
 
 def draw_fitted(layout, fitted):
@@ -37,13 +35,10 @@ def draw_fitted(layout, fitted):
     layout.label(text=f"Fit of frames {fitted.first_frame}–{fitted.last_frame}: residual "
                       f"{fitted.residual:.3g} m (worst frame {fitted.worst_frame})"
                       + ("" if fitted.converged else ", not converged"))
-    grid = layout.grid_flow(columns=5, even_columns=True, align=True)
-    for text in ("Mode", "Hz prepared", "Hz fitted", "Damping prep.", "Damping fitted"):
-        grid.label(text=text)
+    layout.label(text="Mode: frequency prepared → fitted, damping prepared → fitted")
     for k, (f0, f1, d0, d1) in enumerate(zip(fitted.prepared_frequencies, fitted.frequencies,
                                              fitted.prepared_damping, fitted.damping)):
-        for text in (str(k + 1), f"{f0:.3f}", f"{f1:.3f}", f"{d0:.3f}", f"{d1:.3f}"):
-            grid.label(text=text)
+        layout.label(text=f"{k + 1}: {f0:.3f} → {f1:.3f} Hz, {d0:.3f} → {d1:.3f} /s")
 
 
 CLASSES = (RS_ELASTIC_PT_take,)

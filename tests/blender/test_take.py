@@ -16,6 +16,7 @@ import bpy
 
 from blender_helpers import diagonal, make_bar, vertices
 from test_faults import refusal
+from test_panels import draw_all
 
 ROOT_YOUNGS, UNIFORM_YOUNGS, RATIO, POISSON, DENSITY = 3.0e6, 2.0e6, 1.0 / 3.0, 0.3, 1000.0
 RAYLEIGH, FPS, KEYED, FRAMES = (0.05, 0.002), 30, 150, 300
@@ -131,6 +132,13 @@ def test_a_take_from_a_mesh_cache_fits_and_continues_closer_than_the_uniform_mat
     assert error <= uniform_error / 3.0
     assert error < 0.02 * size
 
+    shown = draw_all()                                   # the panel: prepared vs fitted
+    assert ("label", f"1: {fitted.prepared_frequencies[0]:.3f} → {fitted.frequencies[0]:.3f} Hz, "
+                     f"{fitted.prepared_damping[0]:.3f} → {fitted.damping[0]:.3f} /s") in shown
+    assert ("operator", "rs_elastic.continue_motion") in shown
+    assert any(kind == "label" and f"residual {fitted.residual:.3g} m" in text
+               for kind, text in shown)
+
     blend = tmp_path / "take.blend"                      # the fitted material is in the .blend
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))
@@ -164,3 +172,33 @@ def test_a_source_with_other_vertices_is_refused_and_nothing_changes(ext):
     obj.rs_elastic.take_source = None
     assert "fitted material" in refusal(lambda: bpy.ops.rs_elastic.continue_motion(frame_end=9))
     assert "no take" in refusal(bpy.ops.rs_elastic.fit_material)
+
+
+def test_the_body_takes_its_own_shape_key_animation_without_its_bake(ext):
+    """The body itself as the source: its user's animated shape key is the take (each frame
+    rest + value (key - rest), value from the key's own F-curve); the extension's bake on the
+    same body, which would add 0.3 m, is muted while reading and plays again after."""
+    obj = make_bar(name="Body", cuts=1)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.3, 4
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    rest = vertices(obj)
+    frames = list(range(1, 6))
+    ext.bridge.bake.write_bake(obj, frames, np.repeat(rest[None] + 0.3, len(frames), axis=0))
+    bend = obj.shape_key_add(name="Bend", from_mix=False)
+    bent = rest + np.stack([np.zeros(len(rest)), np.zeros(len(rest)),
+                            0.05 * (rest[:, 0] / 4.0) ** 2], axis=1)
+    bend.data.foreach_set("co", bent.ravel())
+    for frame, value in ((1, 0.0), (5, 1.0)):
+        bend.value = value
+        bend.keyframe_insert("value", frame=frame)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = frames[0], frames[-1]
+    scene.frame_set(3)
+    assert bpy.ops.rs_elastic.take_from_animation() == {'FINISHED'}
+    curve = ext.bridge.animation.fcurves(obj.data.shape_keys, create=False).find(
+        'key_blocks["Bend"].value')
+    values = [curve.evaluate(f) for f in frames]
+    expected = rest[None] + np.array(values)[:, None, None] * (bent - rest)[None]
+    np.testing.assert_allclose(ext.bridge.bake.take_poses(obj)[1], expected, atol=1e-6)
+    assert scene.frame_current == 3
+    assert not any(block.mute for block in ext.bridge.bake.owned_keys(obj, "bake"))
