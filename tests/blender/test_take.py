@@ -202,3 +202,37 @@ def test_the_body_takes_its_own_shape_key_animation_without_its_bake(ext):
     np.testing.assert_allclose(ext.bridge.bake.take_poses(obj)[1], expected, atol=1e-6)
     assert scene.frame_current == 3
     assert not any(block.mute for block in ext.bridge.bake.owned_keys(obj, "bake"))
+
+
+def test_the_command_line_takes_fits_continues_and_saves(ext, tmp_path):
+    """`fit --object Body --source Source --frames 1-12 --continue-to 20`: the saved file holds
+    the take (frames 1-12, the source's positions), the fitted material of those frames and the
+    continuation's bake 13-20; the scene's range is as before; a bad --source is refused (2)."""
+    from test_spacetime import run_cli
+    obj = make_bar(name="Body", cuts=1)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.3, 4
+    rest = vertices(obj)
+    wave = rest[None] + np.outer(0.05 * np.sin(np.arange(12) / 2.0),
+                                 (rest[:, 0] / 4.0) ** 2)[:, :, None] * [0.0, 0.0, 1.0]
+    source = playing_source(ext, obj, wave, tmp_path / "wave.pc2")
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 250
+    blend, out = tmp_path / "shot.blend", tmp_path / "fitted.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+
+    run = run_cli(blend, ["fit", "--object", "Body", "--source", source.name, "--frames", "1-12",
+                          "--continue-to", "20", "--output", str(out)])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "rs_elastic: fitted the material of 'Body' to frames 1-12" in run.stdout, run.stdout
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    body = bpy.data.objects["Body"]
+    frames, take = ext.bridge.bake.take_poses(body)
+    assert frames == list(range(1, 13))
+    np.testing.assert_allclose(take, wave, atol=1e-6)
+    fitted = ext.bridge.take.fitted_material(body)
+    assert (fitted.first_frame, fitted.last_frame) == (1, 12)
+    assert ext.bridge.bake.bake_frames(body) == list(range(13, 21))
+    assert (bpy.context.scene.frame_start, bpy.context.scene.frame_end) == (1, 250)
+
+    bad = run_cli(blend, ["fit", "--object", "Body", "--source", "Nobody"])
+    assert bad.returncode == 2, bad.stderr
