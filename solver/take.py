@@ -12,8 +12,9 @@ Everything is in the body's object space (metres), frames are scene frames, h [s
 import dataclasses
 
 import numpy as np
+import scipy.optimize
 
-from . import poses, spacetime
+from . import materials, poses, spacetime
 
 # Weight of a take frame against one frame's dynamics (``spacetime.suggest_weights``
 # tightness). The take is data with noise the modes cannot express, not a target to meet
@@ -162,3 +163,69 @@ def continue_motion(fitted, count):
     Z = spacetime.simulate_modal(fitted.eigenvalues, fitted.damping, fitted.state[0],
                                  fitted.state[1], int(count) + 2, fitted.h, fitted.scheme)
     return Z[2:] @ fitted.sampling.T
+
+
+# --- the fitted material in a simulation ------------------------------------------------------
+
+def fitted_stiffness(fitted, prepared_stiffness):
+    """(m, m) the reduced stiffness K [J per unit s^2] whose restriction to the fitted modes
+    s = S z is A = G^1/2 Lambda G^1/2 (G = S^T S; for unit, orthogonal columns of S simply the
+    fitted Lambda), and the prepared stiffness K0 (m, m) (a potential's ``rest_hessian``) on
+    what is K0-orthogonal to them. Split s = S z + c with z = P s, P = (S^T K0 S)^-1 S^T K0:
+    s^T K s = z^T A z + c^T K0 c, so K = K0 - K0 S P + P^T A P, positive definite with A and K0.
+    (Keeping K0 on a plainly orthogonal complement instead was not: a fitted mode mixing in a
+    stiff candidate mode made K indefinite.)"""
+    S = fitted.sampling
+    K0 = np.asarray(prepared_stiffness, dtype=np.float64)
+    values, vectors = np.linalg.eigh(S.T @ S)
+    root = (vectors * np.sqrt(values)) @ vectors.T
+    A = root @ np.diag(fitted.eigenvalues) @ root
+    K0S = K0 @ S
+    P = np.linalg.solve(S.T @ K0S, K0S.T)
+    K = K0 - K0S @ P + P.T @ A @ P
+    return 0.5 * (K + K.T)
+
+
+def fitted_rayleigh(fitted):
+    """(alpha [1/s], beta [s]) >= 0 of the Rayleigh damping alpha + beta lambda_k nearest the
+    fitted per-mode damping d_k, relative to each d_k's scale (``scipy.optimize.nnls``): what
+    a simulation, whose damping is Rayleigh, can take of the fit."""
+    scale = 2.0 * np.sqrt(fitted.eigenvalues)            # d_k's scale: twice omega_k
+    A = np.stack([np.ones_like(scale), fitted.eigenvalues], axis=1) / scale[:, None]
+    (alpha, beta), _ = scipy.optimize.nnls(A, fitted.damping / scale)
+    return float(alpha), float(beta)
+
+
+class FittedPotential(materials.PotentialAccessors):
+    """A reduced potential (anything with ``evaluate``, ``rest_hessian``, ``num_coords``) with
+    its stiffness at rest replaced by ``fitted_stiffness``: V(s) + 1/2 s^T (K - K0) s. For the
+    Linear material that is exactly 1/2 s^T K s; a nonlinear one keeps its own nonlinearity.
+    Other attributes (the material the barriers read) are the wrapped potential's."""
+
+    def __init__(self, potential, fitted):
+        self.potential = potential
+        self.num_coords = potential.num_coords
+        self.rest_hessian = fitted_stiffness(fitted, potential.rest_hessian)
+        self.correction = self.rest_hessian - potential.rest_hessian
+
+    def __getattr__(self, name):            # only called for attributes not found above
+        if name in ("potential", "correction"):
+            raise AttributeError(name)
+        return getattr(self.potential, name)
+
+    def evaluate(self, s, order=2):
+        energy, grad, hess = self.potential.evaluate(s, order)
+        Cs = self.correction @ np.asarray(s, dtype=np.float64)
+        energy = energy + 0.5 * float(np.asarray(s) @ Cs)
+        return (energy, None if grad is None else grad + Cs,
+                None if hess is None else hess + self.correction)
+
+
+def continuation_state(fitted):
+    """(s (m,), ds/dt (m,)) at the fit's last frame for a simulation started there: the
+    position, and the velocity of the fitted motion (backward difference plus half a step of
+    its acceleration, second order in h)."""
+    z_prev, z = fitted.state
+    velocity = (z - z_prev) / fitted.h
+    acceleration = -fitted.eigenvalues * z - fitted.damping * velocity
+    return fitted.sampling @ z, fitted.sampling @ (velocity + 0.5 * fitted.h * acceleration)
