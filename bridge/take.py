@@ -12,6 +12,7 @@ The fitted material lives in the .blend as an ID property on the object (``FITTE
 dict of ``solver.take.FittedMaterial``), so it survives save, reopen and undo.
 """
 import contextlib
+import dataclasses
 
 import numpy as np
 import scipy.spatial
@@ -170,6 +171,29 @@ def fit_material(obj, blender_scene):
     return fitted
 
 
+def require_fitted(obj, body):
+    """The object's ``FittedMaterial`` for its prepared ``body``; InputError if it has none, or
+    one of an earlier preparation."""
+    fitted = fitted_material(obj)
+    if fitted is None:
+        raise InputError(f"'{obj.name}' has no fitted material: run Fit Material first")
+    if fitted.sampling.shape[0] != body.deformer.num_coords:
+        raise InputError(f"'{obj.name}' was prepared again since Fit Material: fit again")
+    return fitted
+
+
+def simulated_material(obj, body, potential, settings):
+    """(potential, ``problems.SimulationSettings``) of a simulation: as given, or with Use
+    Fitted Material the fitted stiffness on the potential and the Rayleigh damping nearest the
+    fitted damping (``solver.take``)."""
+    if not obj.rs_elastic.use_fitted_material:
+        return potential, settings
+    fitted = require_fitted(obj, body)
+    alpha, beta = solver_take.fitted_rayleigh(fitted)
+    return (solver_take.FittedPotential(potential, fitted),
+            dataclasses.replace(settings, damping_mass=alpha, damping_stiffness=beta))
+
+
 def continue_motion(obj, frame_end):
     """Bake the fitted material's free motion from the fit's last frame to ``frame_end``
     (the frames after the fit; the take's keys are untouched). Returns the baked frames."""
@@ -185,8 +209,7 @@ def continue_motion(obj, frame_end):
         raise InputError(f"Continue to frame {frame_end}: more than {scene.MAX_FRAMES} frames "
                          "after the fit")
     body = prepared.require(obj)
-    if fitted.sampling.shape[0] != body.deformer.num_coords:
-        raise InputError(f"'{obj.name}' was prepared again since Fit Material: fit again")
+    fitted = require_fitted(obj, body)
     frames = list(range(fitted.last_frame + 1, frame_end + 1))
     rest = scene.base_vertices(obj)
     positions = body.surface_positions(rest, solver_take.continue_motion(fitted, len(frames)))

@@ -132,6 +132,20 @@ def test_a_take_from_a_mesh_cache_fits_and_continues_closer_than_the_uniform_mat
     assert error <= uniform_error / 3.0
     assert error < 0.02 * size
 
+    obj.rs_elastic.use_fitted_material = True            # the editor and the simulation
+    edit = ext.bridge.spacetime_inputs.settings_of(obj, scene)
+    assert edit.fitted is not None
+    np.testing.assert_array_equal(ext.solver.problems.material_of(body, edit)[0],
+                                  fitted.eigenvalues)
+    linear = ext.solver.problems.linear_potential(body, UNIFORM_YOUNGS, POISSON)
+    potential, simulated = ext.bridge.take.simulated_material(
+        obj, body, linear, ext.bridge.simulation_inputs.settings_of(obj, scene, np.zeros(3)))
+    S = fitted.sampling
+    restricted = np.linalg.eigvals(np.linalg.solve(S.T @ S, S.T @ potential.rest_hessian @ S))
+    np.testing.assert_allclose(np.sort(restricted.real), np.sort(fitted.eigenvalues), rtol=1e-8)
+    assert (simulated.damping_mass, simulated.damping_stiffness) == \
+        ext.solver.take.fitted_rayleigh(fitted)
+
     shown = draw_all()                                   # the panel: prepared vs fitted
     assert ("label", f"1: {fitted.prepared_frequencies[0]:.3f} → {fitted.frequencies[0]:.3f} Hz, "
                      f"{fitted.prepared_damping[0]:.3f} → {fitted.damping[0]:.3f} /s") in shown
@@ -172,6 +186,9 @@ def test_a_source_with_other_vertices_is_refused_and_nothing_changes(ext):
     obj.rs_elastic.take_source = None
     assert "fitted material" in refusal(lambda: bpy.ops.rs_elastic.continue_motion(frame_end=9))
     assert "no take" in refusal(bpy.ops.rs_elastic.fit_material)
+    obj.rs_elastic.use_fitted_material = True
+    assert "fitted material" in refusal(bpy.ops.rs_elastic.simulate)
+    assert "fitted material" in refusal(bpy.ops.rs_elastic.solve_spacetime)
 
 
 def test_the_body_takes_its_own_shape_key_animation_without_its_bake(ext):
