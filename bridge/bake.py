@@ -446,12 +446,27 @@ def _cache_bake_as_take(obj):
     if not frames:
         return []
     with writes.transaction(f"Keeping the bake of '{obj.name}' as the take") as transaction:
-        aside = _set_aside(obj, owned_keys(obj, "take"), transaction)
-        names = [f"{TAKE_PREFIX}{frame:04d}" for frame in frames]
-        for block, pose in zip(add_keys(obj, names, "take", transaction), positions):
-            _set_positions(block, pose)
-            block.value = 0.0
-        remove_keys_later(obj, aside, transaction)
+        _write_take_keys(obj, frames, positions, transaction)
         mesh_cache.clear(obj)
         obj.data.update()
     return frames
+
+
+def _write_take_keys(obj, frames, positions, transaction):
+    """The take's keys (at 0, not animated) for poses (F, n, 3) of ``frames``, replacing the
+    previous take's."""
+    aside = _set_aside(obj, owned_keys(obj, "take"), transaction)
+    names = [f"{TAKE_PREFIX}{frame:04d}" for frame in frames]
+    for block, pose in zip(add_keys(obj, names, "take", transaction), positions):
+        _set_positions(block, pose)
+        block.value = 0.0
+    remove_keys_later(obj, aside, transaction)
+
+
+def write_take(obj, frames, positions):
+    """Make poses (F, n, 3) [object space] of ``frames`` the take (Take from Animation),
+    replacing the previous take; the bake is left as it is."""
+    require_writable(obj, "store a take")
+    with writes.transaction(f"Storing the take of '{obj.name}'") as transaction:
+        _write_take_keys(obj, frames, positions, transaction)
+        obj.data.update()

@@ -1,4 +1,6 @@
-"""The command line: `blender -b shot.blend -c rs_elastic bake --object NAME …`.
+"""The command line: `blender -b shot.blend -c rs_elastic bake --object NAME …`, and
+`… fit --object NAME [--source OBJECT] [--frames A-B] [--continue-to FRAME]` (Take from
+Animation, Fit Material, Continue: batch fits).
 
 `main(argv)` is the registered handler and what the tests call (the bpy module cannot take `-c`).
 Every argument is checked before any work. It prepares what is missing, solves (space-time edit)
@@ -21,7 +23,7 @@ import sys
 
 import bpy
 
-from . import bake, farm, mesh_cache, spacetime_inputs, writes
+from . import bake, farm, mesh_cache, spacetime_inputs, take, writes
 from .properties import LAST_FRAME
 from .scene import MAX_FRAMES, InputError
 
@@ -61,6 +63,16 @@ def _parser():
                                "object's Bake To setting")
     bake_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open file)")
     _farm_arguments(bake_cmd, commands)
+    fit_cmd = commands.add_parser("fit", help="take an animation, fit the material, continue "
+                                              "and save")
+    fit_cmd.add_argument("--object", required=True, help="name of the body (a mesh object)")
+    fit_cmd.add_argument("--source", help="the object whose motion is the take (default: the "
+                                          "body's Take Source, else the body itself)")
+    fit_cmd.add_argument("--frames", help="the take's frame range A-B (default: the scene's); "
+                                          "the whole take is fitted")
+    fit_cmd.add_argument("--continue-to", type=int, metavar="FRAME",
+                         help="bake the fitted material's motion after the take up to FRAME")
+    fit_cmd.add_argument("--output", help="save to this .blend (default: overwrite the open file)")
     return parser
 
 
@@ -318,11 +330,49 @@ def _prepare_and_bake(args, obj, playing, output, mode_note=""):
             + ("" if status is None else f"\nrs_elastic: {status[1]}"))
 
 
+def fit_command(args):
+    """Take from Animation, Fit Material and (--continue-to) Continue on one body, then save;
+    the scene's frame range is put back before saving."""
+    obj = _body(args.object)
+    source = None if args.source is None else _body(args.source)
+    frames = None if args.frames is None else _frame_range(args.frames)
+    output = _output_path(args.output)
+    if args.continue_to is not None:
+        _check_cache_target(obj, obj.rs_elastic.bake_to)
+    bpy.context.view_layer.objects.active = obj
+    mode_note = _leave_mode(obj)
+    if source is not None:
+        obj.rs_elastic.take_source = source
+    scene = bpy.context.scene
+    scene_range = scene.frame_start, scene.frame_end
+    if frames is not None:
+        scene.frame_start, scene.frame_end = frames
+    try:
+        _run_operator("prepare", f"could not prepare '{obj.name}'")
+        _run_operator("take_from_animation", f"could not take the animation of '{obj.name}'")
+        obj.rs_elastic.fit_frame_start = obj.rs_elastic.fit_frame_end = 0   # the whole take
+        _run_operator("fit_material", f"could not fit the material of '{obj.name}'")
+        if args.continue_to is not None:
+            _run_operator("continue_motion", f"could not continue '{obj.name}'",
+                          frame_end=args.continue_to)
+    finally:
+        scene.frame_start, scene.frame_end = scene_range
+    fitted = take.fitted_material(obj)
+    report = (f"fitted the material of '{obj.name}' to frames {fitted.first_frame}-"
+              f"{fitted.last_frame} (residual {fitted.residual:.3g} m, worst frame "
+              f"{fitted.worst_frame}; first frequency {fitted.prepared_frequencies[0]:.3g} -> "
+              f"{fitted.frequencies[0]:.3g} Hz)")
+    if args.continue_to is not None:
+        report += f", continued to frame {args.continue_to}"
+    _save(output)
+    return f"{report} into {output}{mode_note}"
+
+
 def _say_error(message):
     print(f"rs_elastic: error: {message}", file=sys.stderr, flush=True)
 
 
-COMMANDS = {"bake": bake_command, "collect": collect_command}
+COMMANDS = {"bake": bake_command, "collect": collect_command, "fit": fit_command}
 
 
 def main(argv):

@@ -31,6 +31,10 @@ _live_changed = _reaction("live")
 _show_tets_changed = _reaction("show_tets")
 
 
+def _is_mesh(_settings, obj):
+    return obj.type == 'MESH'
+
+
 class RSElasticMode(bpy.types.PropertyGroup):
     """One linear mode's result, for the panel and for scripts."""
     frequency_hz: FloatProperty(name="Frequency", unit='NONE', description="Natural frequency in Hz")
@@ -260,6 +264,19 @@ class RSElasticSettings(bpy.types.PropertyGroup):
                                            "relative to a handle: keep it small, so edits can "
                                            "bend the take around them")
     solve_history: CollectionProperty(type=RSElasticValue)
+    take_source: PointerProperty(
+        type=bpy.types.Object, poll=_is_mesh, name="Take Source",
+        description="The object whose evaluated motion Take from Animation reads (same "
+                    "vertices, same order); empty: this object itself")
+    fit_frame_start: IntProperty(name="Fit Start", default=0, min=-LAST_FRAME, max=LAST_FRAME,
+                                 description="First take frame Fit Material fits (with Fit End "
+                                             "0 or below Fit Start: the whole take)")
+    fit_frame_end: IntProperty(name="Fit End", default=0, min=-LAST_FRAME, max=LAST_FRAME,
+                               description="Last take frame Fit Material fits")
+    use_fitted_material: BoolProperty(
+        name="Use Fitted Material", default=False,
+        description="The space-time editor uses the material Fit Material recovered from the "
+                    "take (each mode's frequency and damping) instead of the prepared one")
 
     @property
     def frequencies(self):

@@ -6,7 +6,7 @@ import numpy as np
 from ..solver import contact, dynamics, problems
 from ..solver.frames import FrameMotion
 from . import (armature, bake, bodies, colliders, jobs, prepared, scene,
-               stage_cache, transforms)
+               stage_cache, take, transforms)
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -152,7 +152,10 @@ def gather(obj, blender_scene):
 
 def _simulation(obj, body, settings, **loads):
     try:
-        return problems.simulation(body, potential_for(body, obj.rs_elastic), settings, **loads)
+        potential, settings = take.simulated_material(obj, body,
+                                                      potential_for(body, obj.rs_elastic),
+                                                      settings)
+        return problems.simulation(body, potential, settings, **loads)
     except ValueError as exc:          # e.g. contact samples that do not fit the basis
         raise InputError(f"'{obj.name}': {exc}") from None
 

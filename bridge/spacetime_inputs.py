@@ -6,7 +6,7 @@ import numpy as np
 
 from ..solver import accuracy, problems, spacetime
 from ..solver.body import PreparedBody
-from . import armature, bake, constraints, prepared, scene
+from . import armature, bake, constraints, prepared, scene, take
 from .jobs import Cancelled
 from .scene import InputError
 
@@ -52,11 +52,18 @@ def status_sentence(result):
 def settings_of(obj, blender_scene):
     """The body's space-time settings as a ``problems.SpaceTimeSettings``."""
     settings = obj.rs_elastic
+    fitted = None
+    if settings.use_fitted_material:
+        fitted = take.fitted_material(obj)
+        if fitted is None:
+            raise InputError(f"'{obj.name}' has no fitted material: run Fit Material, or untick "
+                             "Use Fitted Material")
     return problems.SpaceTimeSettings(
         h=scene.frame_interval(blender_scene), damping_mass=settings.damping_mass,
         damping_stiffness=settings.damping_stiffness, tightness=settings.tightness,
         optimize_material=settings.optimize_material,
-        material_freedom=settings.material_freedom, take_weight=settings.take_weight)
+        material_freedom=settings.material_freedom, take_weight=settings.take_weight,
+        fitted=fitted)
 
 
 def _take(obj, warnings):

@@ -39,6 +39,7 @@ class SpaceTimeSettings:
     material_freedom: float = 1.5
     take_weight: float = 0.01     # a take frame's weight relative to a handle's
     handle_gamma_factor: float = 1.0   # handles weigh this much more (a rig's loads, see bridge)
+    fitted: object = None         # a ``take.FittedMaterial`` used instead of the prepared one
 
 
 @dataclasses.dataclass
@@ -144,10 +145,7 @@ def spacetime_problem(body, rest, frames, tracks=(), pose_keys=(), take=None, se
         raise NothingToSolve("nothing to solve for")
 
     candidates = body.deformer.num_coords
-    optimised = optimised_modes(candidates) if settings.optimize_material else candidates
-    eigenvalues = body.linear_modes.eigenvalues[:optimised]    # S = [I; 0] (candidates x optimised)
-    damping = spacetime.rayleigh_damping(eigenvalues, settings.damping_mass,
-                                         settings.damping_stiffness)
+    eigenvalues, damping, sampling = material_of(body, settings)
     handles = None
     if parts:
         handles = spacetime.HandleConstraints(*(np.concatenate(p) for p in zip(*parts)))
@@ -163,13 +161,32 @@ def spacetime_problem(body, rest, frames, tracks=(), pose_keys=(), take=None, se
     external = None
     if external_forces is not None:
         jacobian = body.deformer.q_jacobian(np.zeros(candidates))
-        external = external_forces(np.arange(count) * settings.h, jacobian)[:, :optimised]
+        external = external_forces(np.arange(count) * settings.h, jacobian) @ sampling
     problem = spacetime.SpaceTimeProblem(
         frames=count, h=settings.h, eigenvalues=eigenvalues, damping=damping,
         external_forces=external, deformer=body.deformer, handles=handles, keyframes=keyframes,
-        gamma=gamma * settings.handle_gamma_factor, fix_start=take is None,
+        sampling=sampling, gamma=gamma * settings.handle_gamma_factor, fix_start=take is None,
         material_freedom=settings.material_freedom)
     return SpaceTimeSetup(problem, slices, centroids, warnings)
+
+
+def material_of(body, settings):
+    """(eigenvalues (r,) [rad^2/s^2], damping (r,) [1/s], sampling S (m, r)) an edit starts
+    from: the fitted material when ``settings.fitted`` is set, else the prepared modes (all m, or
+    ``optimised_modes`` of them under material optimisation, S = [I; 0]) with Rayleigh damping.
+    ValueError for a fitted material of another preparation (another number of modes)."""
+    candidates = body.deformer.num_coords
+    fitted = settings.fitted
+    if fitted is not None:
+        if fitted.sampling.shape[0] != candidates:
+            raise ValueError(f"the fitted material has {fitted.sampling.shape[0]} modes, the "
+                             f"body {candidates}: it was prepared again since, so fit again")
+        return fitted.eigenvalues, fitted.damping, fitted.sampling
+    optimised = optimised_modes(candidates) if settings.optimize_material else candidates
+    eigenvalues = body.linear_modes.eigenvalues[:optimised]
+    damping = spacetime.rayleigh_damping(eigenvalues, settings.damping_mass,
+                                         settings.damping_stiffness)
+    return eigenvalues, damping, np.eye(candidates, optimised)
 
 
 def handle_stretch_demands(body, rest_centroids, tracks):
