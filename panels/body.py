@@ -3,7 +3,7 @@ import textwrap
 
 import bpy
 
-from ..bridge import constraints, staleness
+from ..bridge import constraints, jobs, staleness
 
 WRAP = 34      # characters: about 215 px of the UI font at the default sidebar width
 
@@ -25,6 +25,21 @@ def draw_lines(layout, text, icon='NONE'):
     col = layout.column(align=True)
     for i, line in enumerate(lines):
         col.label(text=line, icon=icon if i == 0 else ('BLANK1' if icon != 'NONE' else 'NONE'))
+
+
+def draw_progress(layout, obj, idname):
+    """While operator `idname` (e.g. "rs_elastic.prepare") runs on `obj` as a modal job: its
+    progress as a bar (Blender 4.0 on) or a line, and whether Esc cancels it. True if drawn."""
+    job = jobs.running_job(obj)
+    if job is None or job.idname != idname:
+        return False
+    text = f"{job.message} ({100 * job.fraction:.0f} %)"
+    if hasattr(layout, "progress"):
+        layout.progress(factor=job.fraction, type='BAR', text=text)
+    else:
+        layout.label(text=text, icon='TIME')
+    layout.label(text="Esc cancels" if not job.is_cancelled() else "Cancelling", icon='CANCEL')
+    return True
 
 
 def drawn_body(layout, context):

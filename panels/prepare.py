@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import armature
-from .body import RSElasticPanel, drawn_body, draw_lines
+from .body import RSElasticPanel, drawn_body, draw_lines, draw_progress
 
 
 class RS_ELASTIC_UL_modes(bpy.types.UIList):
@@ -58,6 +58,7 @@ class RS_ELASTIC_PT_modes(RSElasticPanel, bpy.types.Panel):
         row = layout.row()
         row.prop(settings, "num_modes")
         layout.operator("rs_elastic.prepare", icon='PLAY')
+        draw_progress(layout, obj, "rs_elastic.prepare")
         col = layout.column(align=True)     # 'Name: value' fields: the names fit the sidebar
         col.prop(settings, "basis_size")
         col.prop(settings, "cubature_tets")

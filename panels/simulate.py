@@ -3,7 +3,7 @@ range, damping and bake it shares with a space-time solve are in the Bake panel)
 import bpy
 
 from ..bridge import bodies, colliders
-from .body import RSElasticPanel, drawn_body, draw_lines
+from .body import RSElasticPanel, drawn_body, draw_lines, draw_progress
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -26,6 +26,7 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
         draw_collisions(layout, context, obj)
         layout.use_property_split = False
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
+        draw_progress(layout, obj, "rs_elastic.simulate")
 
 
 def energy_label(obj):
