@@ -52,6 +52,23 @@ def drawn_body(layout, context):
     return obj
 
 
+def body_status(layout, obj):
+    """The body's name and whether it is prepared, stale (and why) or tetrahedralized."""
+    settings = obj.rs_elastic
+    row = layout.row()
+    row.label(text=obj.name, icon='MESH_DATA')
+    stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
+    if stale:
+        row.label(text="Stale", icon='ERROR')
+        draw_lines(layout, stale[0].upper() + stale[1:])
+    elif settings.is_prepared:
+        row.label(text="Prepared", icon='CHECKMARK')
+    elif settings.tets_key:
+        row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
+    else:
+        row.label(text="Not prepared", icon='DOT')
+
+
 class RSElasticPanel:
     bl_space_type = 'VIEW_3D'
     bl_region_type = 'UI'
@@ -74,19 +91,7 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         if obj is None:
             self.layout.label(text="Select a mesh object", icon='INFO')
             return
-        settings = obj.rs_elastic
-        row = self.layout.row()
-        row.label(text=obj.name, icon='MESH_DATA')
-        stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
-        if stale:
-            row.label(text="Stale", icon='ERROR')
-            draw_lines(self.layout, stale[0].upper() + stale[1:])
-        elif settings.is_prepared:
-            row.label(text="Prepared", icon='CHECKMARK')
-        elif settings.tets_key:
-            row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
-        else:
-            row.label(text="Not prepared", icon='DOT')
+        body_status(self.layout, obj)
         if obj is not context.active_object:
             self.layout.label(text=f"Handle of {obj.name}", icon='EMPTY_AXIS')
         self.layout.operator("rs_elastic.write_farm_job_type", icon='NETWORK_DRIVE')
