@@ -6,6 +6,7 @@ main thread, calls `job.step(fraction, message)` between stages (which raises `C
 was pressed), and returns a result that the operator applies to Blender on the main thread.
 """
 import threading
+import time
 
 import bpy
 
@@ -40,6 +41,11 @@ class Job:
         self.warnings.append(message)
 
     def is_cancelled(self):
+        """Asked by the work between its small steps (a substep, an iteration). It also hands
+        Python's lock to the main thread if that waits for it (sleep(0) releases it): otherwise
+        each of the main thread's Python calls (a panel's draw, the modal handler that hears
+        Esc) may wait up to the interpreter's switch interval (5 ms) for it."""
+        time.sleep(0)
         return self._cancel.is_set()
 
     # --- called by the operator ----------------------------------------------------------------------
@@ -80,12 +86,18 @@ def python_idname(idname):
     return idname
 
 
+PANEL_REGIONS = {('VIEW_3D', 'UI'), ('PROPERTIES', 'WINDOW')}
+
+
 def _redraw_sidebars(context):
-    """Redraw the 3D viewports and Properties editors, where the panels draw the progress bar."""
+    """Redraw the regions where the panels draw the progress bar (the 3D viewports' sidebars and
+    the Properties editors), not the viewports: with software OpenGL a viewport's redraw takes
+    long enough to hold back Esc."""
     screen = context.window.screen if context.window is not None else None
     for area in screen.areas if screen is not None else ():
-        if area.type in {'VIEW_3D', 'PROPERTIES'}:
-            area.tag_redraw()
+        for region in area.regions:
+            if (area.type, region.type) in PANEL_REGIONS:
+                region.tag_redraw()
 
 
 class JobOperator:
@@ -187,12 +199,13 @@ class JobOperator:
         shown = (round(100 * job.fraction), job.message)
         if shown == self._shown:
             return
+        if shown[0] != (self._shown or (None,))[0]:       # the bar moved
+            context.window_manager.progress_update(shown[0])
+            _redraw_sidebars(context)
         self._shown = shown
-        context.window_manager.progress_update(shown[0])
         if context.workspace is not None:
             context.workspace.status_text_set(
                 f"{self.bl_label}: {job.message} ({shown[0]} %) - Esc to cancel")
-        _redraw_sidebars(context)
 
     def modal(self, context, event):
         job = self._job
