@@ -6,8 +6,13 @@ main thread, calls `job.step(fraction, message)` between stages (which raises `C
 was pressed), and returns a result that the operator applies to Blender on the main thread.
 """
 import threading
+import time
 
 import bpy
+
+POLL = 0.1              # s between the modal operator's timer ticks while a job runs
+CANCEL_POLL = 0.01      # s between ticks once Esc was pressed: the operator ends right after the work
+RUNNING = {}            # {object name: Job} of the modal jobs running now (the panels' progress bars)
 
 
 class Cancelled(Exception):
@@ -15,8 +20,9 @@ class Cancelled(Exception):
 
 
 class Job:
-    def __init__(self, work):
+    def __init__(self, work, idname="", object_name=""):
         self._work = work
+        self.idname, self.object_name = idname, object_name
         self._cancel = threading.Event()
         self._thread = None
         self.fraction = 0.0
@@ -35,6 +41,11 @@ class Job:
         self.warnings.append(message)
 
     def is_cancelled(self):
+        """Asked by the work between its small steps (a substep, an iteration). It also hands
+        Python's lock to the main thread if that waits for it (sleep(0) releases it): otherwise
+        each of the main thread's Python calls (a panel's draw, the modal handler that hears
+        Esc) may wait up to the interpreter's switch interval (5 ms) for it."""
+        time.sleep(0)
         return self._cancel.is_set()
 
     # --- called by the operator ----------------------------------------------------------------------
@@ -61,6 +72,34 @@ class Job:
         return self._thread is not None and not self._thread.is_alive()
 
 
+def running_job(obj):
+    """The modal job running on `obj` now (its operator's `idname`, `fraction` and `message`),
+    or None."""
+    return RUNNING.get(obj.name) if obj is not None else None
+
+
+def python_idname(idname):
+    """"rs_elastic.prepare" for either spelling (an operator instance says "RS_ELASTIC_OT_prepare")."""
+    if "_OT_" in idname:
+        module, name = idname.split("_OT_", 1)
+        return f"{module.lower()}.{name}"
+    return idname
+
+
+PANEL_REGIONS = {('VIEW_3D', 'UI'), ('PROPERTIES', 'WINDOW')}
+
+
+def _redraw_sidebars(context):
+    """Redraw the regions where the panels draw the progress bar (the 3D viewports' sidebars and
+    the Properties editors), not the viewports: with software OpenGL a viewport's redraw takes
+    long enough to hold back Esc."""
+    screen = context.window.screen if context.window is not None else None
+    for area in screen.areas if screen is not None else ():
+        for region in area.regions:
+            if (area.type, region.type) in PANEL_REGIONS:
+                region.tag_redraw()
+
+
 class JobOperator:
     """Mixin for an operator whose work may take long.
 
@@ -80,8 +119,10 @@ class JobOperator:
 
     def _start(self, context):
         from .scene import InputError
+        obj = context.active_object
         try:
-            return Job(self.make_work(context))
+            return Job(self.make_work(context), python_idname(self.bl_idname),
+                       obj.name if obj else "")
         except InputError as exc:
             self.report({'ERROR'}, str(exc))
             return None
@@ -117,13 +158,25 @@ class JobOperator:
         job = self._start(context)
         if job is None:
             return {'CANCELLED'}
+        self._run_modal(context, job)
+        context.window_manager.modal_handler_add(self)
+        return {'RUNNING_MODAL'}
+
+    def _run_modal(self, context, job):
+        """Start `job` on its thread, with the timer that polls it, the cursor's progress and
+        the panels' progress bar (the modal handler is added once, by invoke)."""
         self._job = job
         job.start()
         wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
+        self._set_timer(context, POLL)
         wm.progress_begin(0, 100)
-        wm.modal_handler_add(self)
-        return {'RUNNING_MODAL'}
+        RUNNING[job.object_name] = job
+
+    def _set_timer(self, context, period):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+        self._timer = wm.event_timer_add(period, window=context.window)
 
     def _cleanup(self, context):
         wm = context.window_manager
@@ -131,20 +184,38 @@ class JobOperator:
             wm.event_timer_remove(self._timer)
             self._timer = None
         wm.progress_end()
+        if RUNNING.get(self._job.object_name) is self._job:
+            del RUNNING[self._job.object_name]
+        _redraw_sidebars(context)
         if context.workspace is not None:
             context.workspace.status_text_set(None)
 
+    _shown = None
+
+    def _show_progress(self, context, job):
+        """The cursor's progress, the status bar and the panels' bar, redrawn only when what
+        they show changed: a redraw runs every panel's Python draw, which waits for the worker
+        to hand over Python's lock each time, and would slow the main thread (and Esc) down."""
+        shown = (round(100 * job.fraction), job.message)
+        if shown == self._shown:
+            return
+        if shown[0] != (self._shown or (None,))[0]:       # the bar moved
+            context.window_manager.progress_update(shown[0])
+            _redraw_sidebars(context)
+        self._shown = shown
+        if context.workspace is not None:
+            context.workspace.status_text_set(
+                f"{self.bl_label}: {job.message} ({shown[0]} %) - Esc to cancel")
+
     def modal(self, context, event):
         job = self._job
-        if event.type == 'ESC' and event.value == 'PRESS':
-            job.cancel()
-        if event.type != 'TIMER':
+        if event.type == 'ESC' and event.value == 'PRESS' and not job.is_cancelled():
+            job.cancel()            # the work stops at its next check (a substep, a stage)
+            self._set_timer(context, CANCEL_POLL)
+        if event.type != 'TIMER' and not job.done:
             return {'RUNNING_MODAL'}
         if not job.done:
-            context.window_manager.progress_update(int(100 * job.fraction))
-            if context.workspace is not None:
-                context.workspace.status_text_set(
-                    f"{self.bl_label}: {job.message} ({100 * job.fraction:.0f} %) - Esc to cancel")
+            self._show_progress(context, job)
             return {'RUNNING_MODAL'}
         self._cleanup(context)
         if job.error is not None:

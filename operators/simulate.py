@@ -61,11 +61,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
             except Exception as exc:
                 return self._fail(exc)
             return self._finish(context, job)
-        self._job = job
-        job.start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
+        self._run_modal(context, job)
         return {'RUNNING_MODAL'}     # the modal handler added by invoke carries on
 
     def apply(self, context, poses, job):

@@ -3,7 +3,7 @@ import textwrap
 
 import bpy
 
-from ..bridge import constraints, staleness
+from ..bridge import constraints, jobs, staleness
 
 WRAP = 34      # characters: about 215 px of the UI font at the default sidebar width
 
@@ -27,6 +27,21 @@ def draw_lines(layout, text, icon='NONE'):
         col.label(text=line, icon=icon if i == 0 else ('BLANK1' if icon != 'NONE' else 'NONE'))
 
 
+def draw_progress(layout, obj, idname):
+    """While operator `idname` (e.g. "rs_elastic.prepare") runs on `obj` as a modal job: its
+    progress as a bar (Blender 4.0 on) or a line, and whether Esc cancels it. True if drawn."""
+    job = jobs.running_job(obj)
+    if job is None or job.idname != idname:
+        return False
+    text = f"{job.message} ({100 * job.fraction:.0f} %)"
+    if hasattr(layout, "progress"):
+        layout.progress(factor=job.fraction, type='BAR', text=text)
+    else:
+        layout.label(text=text, icon='TIME')
+    layout.label(text="Esc cancels" if not job.is_cancelled() else "Cancelling", icon='CANCEL')
+    return True
+
+
 def drawn_body(layout, context):
     """The body a panel draws into `layout`; with a handle's Empty active, the layout's buttons
     act on the body (the operators read the active object)."""
@@ -35,6 +50,23 @@ def drawn_body(layout, context):
         layout.context_pointer_set("active_object", obj)
         layout.context_pointer_set("object", obj)
     return obj
+
+
+def body_status(layout, obj):
+    """The body's name and whether it is prepared, stale (and why) or tetrahedralized."""
+    settings = obj.rs_elastic
+    row = layout.row()
+    row.label(text=obj.name, icon='MESH_DATA')
+    stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
+    if stale:
+        row.label(text="Stale", icon='ERROR')
+        draw_lines(layout, stale[0].upper() + stale[1:])
+    elif settings.is_prepared:
+        row.label(text="Prepared", icon='CHECKMARK')
+    elif settings.tets_key:
+        row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
+    else:
+        row.label(text="Not prepared", icon='DOT')
 
 
 class RSElasticPanel:
@@ -59,19 +91,7 @@ class RS_ELASTIC_PT_body(RSElasticPanel, bpy.types.Panel):
         if obj is None:
             self.layout.label(text="Select a mesh object", icon='INFO')
             return
-        settings = obj.rs_elastic
-        row = self.layout.row()
-        row.label(text=obj.name, icon='MESH_DATA')
-        stale = staleness.stale_reason(obj, cached=True)   # cached: cheap enough for every redraw
-        if stale:
-            row.label(text="Stale", icon='ERROR')
-            draw_lines(self.layout, stale[0].upper() + stale[1:])
-        elif settings.is_prepared:
-            row.label(text="Prepared", icon='CHECKMARK')
-        elif settings.tets_key:
-            row.label(text="Tetrahedralized", icon='MESH_ICOSPHERE')
-        else:
-            row.label(text="Not prepared", icon='DOT')
+        body_status(self.layout, obj)
         if obj is not context.active_object:
             self.layout.label(text=f"Handle of {obj.name}", icon='EMPTY_AXIS')
         self.layout.operator("rs_elastic.write_farm_job_type", icon='NETWORK_DRIVE')

@@ -3,7 +3,7 @@ range, damping and bake it shares with a space-time solve are in the Bake panel)
 import bpy
 
 from ..bridge import bodies, colliders
-from .body import RSElasticPanel, drawn_body, draw_lines
+from .body import RSElasticPanel, drawn_body, draw_lines, draw_progress
 
 
 class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
@@ -12,20 +12,27 @@ class RS_ELASTIC_PT_simulate(RSElasticPanel, bpy.types.Panel):
 
     def draw(self, context):
         obj = drawn_body(self.layout, context)
-        settings = obj.rs_elastic
         layout = self.layout
-        layout.use_property_split = True
-        layout.prop(settings, "material_model")
-        if settings.material_model == 'FUNG':
-            layout.prop(settings, "fung_stiffening")
-        if settings.is_prepared and settings.material_model != 'LINEAR':
-            draw_lines(layout, energy_label(obj), 'INFO')
-        layout.prop(settings, "integrator")
-        layout.prop(settings, "substeps")
-        layout.prop(settings, "start_settled")
-        draw_collisions(layout, context, obj)
-        layout.use_property_split = False
+        draw_simulation_settings(layout, context, obj)
         layout.operator("rs_elastic.simulate", icon='PHYSICS')
+        draw_progress(layout, obj, "rs_elastic.simulate")
+
+
+def draw_simulation_settings(layout, context, obj):
+    """Material model, time integration and collisions (the sidebar's Simulation panel and the
+    Physics tab)."""
+    settings = obj.rs_elastic
+    col = layout.column()
+    col.use_property_split = True
+    col.prop(settings, "material_model")
+    if settings.material_model == 'FUNG':
+        col.prop(settings, "fung_stiffening")
+    if settings.is_prepared and settings.material_model != 'LINEAR':
+        draw_lines(col, energy_label(obj), 'INFO')
+    col.prop(settings, "integrator")
+    col.prop(settings, "substeps")
+    col.prop(settings, "start_settled")
+    draw_collisions(col, context, obj)
 
 
 def energy_label(obj):

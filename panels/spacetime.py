@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import live, spacetime_inputs
-from .body import RSElasticPanel, drawn_body, draw_lines
+from .body import RSElasticPanel, drawn_body, draw_lines, draw_progress
 
 
 class RS_ELASTIC_UL_handles(bpy.types.UIList):
@@ -52,6 +52,7 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "live", toggle=True, icon='REC')
         row.operator("rs_elastic.solve_spacetime", icon='PLAY')
+        draw_progress(layout, obj, "rs_elastic.solve_spacetime")
         live_status = live.status(obj) if settings.live else None
         if live_status is not None:
             layout.label(text=live_status, icon='PREVIEW_RANGE')

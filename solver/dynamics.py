@@ -67,6 +67,10 @@ class InversionError(RuntimeError):
         super().__init__(f"At t = {time:.4g} s (frame {frame} after the start): {self.detail}")
 
 
+class _Interrupted(Exception):
+    """``Simulation.step`` stopped between substeps because ``should_cancel()`` was True."""
+
+
 class SimulationCancelled(Exception):
     """Raised by ``Simulation.run`` when ``should_cancel()`` returned True.
 
@@ -286,8 +290,12 @@ class Simulation:
 
     # -- one frame ----------------------------------------------------------------------------
 
-    def step(self):
+    def step(self, should_cancel=None):
         """Advance one frame h (``substeps`` steps dt); returns the Newton iterations taken.
+
+        should_cancel() -> bool before each substep: True raises ``_Interrupted`` with the frame
+        part-way (``run`` turns it into ``SimulationCancelled`` with the whole frames so far), so
+        a cancel waits for one substep, not a whole frame.
 
         With ``tets``, each internal step is checked for inverted tets and a non-finite energy
         (an RS strain past the volume barrier of ``inversion``, e.g. from a predictor that
@@ -302,6 +310,8 @@ class Simulation:
         frame = int(round((self.time - self._start_time) / self.h)) + 1
         try:
             for _ in range(self.substeps):
+                if should_cancel is not None and should_cancel():
+                    raise _Interrupted()
                 total += self._checked_step(self.h / self.substeps, 0, frame)
         finally:
             self._set_step(self.h / self.substeps)
@@ -458,9 +468,10 @@ class Simulation:
         """
         rows = [self._record()]
         for k in range(int(num_steps)):
-            if should_cancel is not None and should_cancel():
-                raise SimulationCancelled(self._trajectory(rows))
-            self.step()
+            try:
+                self.step(should_cancel)
+            except _Interrupted:
+                raise SimulationCancelled(self._trajectory(rows)) from None
             rows.append(self._record())
             if callback is not None:
                 callback(k + 1, int(num_steps))

@@ -29,7 +29,9 @@ class _Items:
                              active_name, index)
     def _skip(self, *args, **kwargs):
         return None
-    separator = progress = context_pointer_set = _skip
+    def progress(self, factor=0.0, type='BAR', text=""):
+        self.log.append(["progress", text, factor])
+    separator = context_pointer_set = _skip
 
 
 def panel_items(idnames):

@@ -1,6 +1,6 @@
 """The zip installs through Blender's own installer into the real Blender and its panels register
 and show in the sidebar's RS Elastic tab."""
-from panel_sources import PANELS
+from panel_sources import PANELS, PHYSICS_PANELS
 
 
 def test_the_zip_installs_enables_and_registers_its_panels(gui):
@@ -18,7 +18,7 @@ result = {
     "loaded": addon_utils.check(module),
     "file": ext.__file__,
     "operators": sorted(dir(bpy.ops.rs_elastic)),
-    "panels": {name: [cls.bl_space_type, cls.bl_region_type, cls.bl_category,
+    "panels": {name: [cls.bl_space_type, cls.bl_region_type, getattr(cls, "bl_category", ""),
                       getattr(cls, "bl_parent_id", "")] for name, cls in panels.items()},
     "scipy": sys.modules["scipy"].__version__ if "scipy" in sys.modules else None,
 }
@@ -27,7 +27,11 @@ result = {
     # Installed into the throw-away user folder's extension repository, not loaded from elsewhere.
     assert state["file"].startswith(gui.run_in + "/user/extensions/user_default/rs_elastic/")
     assert {"prepare", "simulate", "solve_spacetime", "add_handle"} <= set(state["operators"])
-    assert set(state["panels"]) == set(PANELS), state["panels"]
+    assert set(state["panels"]) == set(PANELS) | set(PHYSICS_PANELS), state["panels"]
+    for name in PHYSICS_PANELS:
+        space, region, _, parent = state["panels"].pop(name)
+        assert (space, region) == ('PROPERTIES', 'WINDOW'), name
+        assert parent == ("" if name == "RS_ELASTIC_PT_physics" else "RS_ELASTIC_PT_physics")
     for name, (space, region, category, parent) in state["panels"].items():
         assert (space, region, category) == ('VIEW_3D', 'UI', "RS Elastic"), name
         assert parent == ("" if name == "RS_ELASTIC_PT_body" else "RS_ELASTIC_PT_body"), name

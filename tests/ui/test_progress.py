@@ -1,0 +1,174 @@
+"""Long operators in the real window: while Prepare Body or Simulate and Bake runs modal, its panel
+draws a progress bar (Blender's `layout.progress`) at the job's fraction, and a real Esc key ends
+Simulate and Bake within a substep's work, with nothing changed."""
+import time
+
+from body_state import body_state
+from panel_items import RECORDER
+from sidebar import drawn_panels
+
+QUICK_BAR = """
+import sys, time, blender_helpers as h
+with override():
+    obj = h.make_bar(cuts=3)
+obj.rs_elastic.edge_length = 0.1
+obj.rs_elastic.num_modes = 3
+with override():
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+"""
+
+# A finer tet mesh, more modes and a larger training than QUICK_BAR: Prepare runs long enough
+# to look at its progress.
+SLOW_PREPARE = """
+s = bpy.data.objects["Bar"].rs_elastic
+s.edge_length, s.num_modes, s.basis_size, s.cubature_tets, s.training_poses = 0.04, 20, 0, 150, 80
+"""
+
+# Many substeps per frame: each frame takes long enough that stopping only between frames shows.
+SLOW_SIMULATION = """
+s = bpy.data.objects["Bar"].rs_elastic
+s.material_model, s.substeps = 'LINEAR', 1000
+bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 200
+"""
+
+OPERATOR = """
+ops = [op for op in bpy.context.window_manager.windows[0].modal_operators
+       if op.bl_idname in OPERATOR_NAMES]
+"""
+
+# The panel's draw code, recorded with the real context while the job runs; the job's fraction
+# read just before and just after the draw bounds the fraction the bar must show.
+PANEL_PROGRESS = RECORDER + OPERATOR + """
+job = ops[0]._job if ops else None
+before = job.fraction if job else None
+items = panel_items([PANEL])[PANEL]
+result = [before, job.fraction if job else None, [i for i in items if i[0] == "progress"]]
+"""
+
+
+def _operator(idname, panel=None):
+    """Code that sets OPERATOR_NAMES (how modal_operators may name operator `idname`) and PANEL."""
+    name = idname.split(".")[1]
+    return f"OPERATOR_NAMES = ({f'RS_ELASTIC_OT_{name}'!r}, {idname!r})\nPANEL = {panel!r}\n"
+
+
+def _wait_for_progress(gui, idname, panel, least, timeout=180):
+    """Poll until the running job is past `least`; return (before, after, progress items) of
+    its panel's draw then."""
+    code = _operator(idname, panel) + PANEL_PROGRESS
+    x, y = gui.point("view", 0.5, 0.5)
+    deadline = time.monotonic() + timeout
+    while True:
+        gui.mouse_move(x, y + (time.monotonic() % 2))   # events keep the modal timer going
+        before, after, bars = gui.run(code)
+        assert before is not None, f"{idname} is not running as a modal operator"
+        if before >= least:
+            return before, after, bars
+        assert time.monotonic() < deadline, f"{idname}: no progress in {timeout} s"
+        time.sleep(0.2)
+
+
+def _check_bar(before, after, bars):
+    assert len(bars) == 1, f"the panel draws no progress bar while the job runs: {bars}"
+    _, text, factor = bars[0]
+    assert before <= factor <= after, (before, factor, after)
+    assert f"({100 * factor:.0f} %)" in text, text
+
+
+def _wait_until_ended(gui, idname, timeout=300):
+    deadline = time.monotonic() + timeout
+    code = _operator(idname) + OPERATOR + "result = len(ops)"
+    while gui.run(code):
+        assert time.monotonic() < deadline, f"Esc did not end {idname} in {timeout} s"
+        gui.settle(0.1)
+
+
+def test_a_modal_prepare_draws_a_progress_bar_at_its_fraction(gui):
+    gui.run(QUICK_BAR, timeout=300)
+    gui.run(SLOW_PREPARE)
+    gui.run("watch_panels()")
+    assert gui.run("with override():\n"
+                   "    result = sorted(bpy.ops.rs_elastic.prepare('INVOKE_DEFAULT'))") == \
+        ["RUNNING_MODAL"]
+    _check_bar(*_wait_for_progress(gui, "rs_elastic.prepare", "RS_ELASTIC_PT_modes", 0.05))
+    # The real sidebar draws the Modes panel with the bar (Blender's own layout.progress).
+    assert ("RS_ELASTIC_PT_modes", "Bar") in drawn_panels(gui)
+    gui.screenshot("progress")
+    gui.key("Escape")
+    _wait_until_ended(gui, "rs_elastic.prepare")
+    # Once it ended, no bar.
+    bars = gui.run(RECORDER + "result = panel_items(['RS_ELASTIC_PT_modes'])"
+                   "['RS_ELASTIC_PT_modes']")
+    assert not [item for item in bars if item[0] == "progress"], bars
+
+
+# Inside Blender, on the running simulation: the worker's frames and substeps timed (wrapped on
+# the instance; the worker looks them up there), and when the operator heard Esc (the job's
+# cancel) and ended (its cleanup), wrapped on the job and the operator. No polling timer: one
+# would compete with the worker for Python's lock and slow down the very thing measured.
+WATCH = OPERATOR + """
+operator, job = ops[0], ops[0]._job
+sim = operator._inputs.simulation
+TIMES = {"frames": [], "substeps": [], "cancel": [], "cleanup": []}
+def timed(function, key):
+    def wrapper(*args, **kwargs):
+        start = time.monotonic()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            TIMES[key].append([start, time.monotonic() - start])
+    return wrapper
+sim.step = timed(sim.step, "frames")
+sim._checked_step = timed(sim._checked_step, "substeps")
+job.cancel = timed(job.cancel, "cancel")
+operator._cleanup = timed(operator._cleanup, "cleanup")
+"""
+
+
+def test_esc_stops_a_simulation_within_a_substep_with_nothing_changed(gui):
+    gui.run(QUICK_BAR, timeout=300)
+    gui.run(SLOW_SIMULATION)
+    before = body_state(gui)
+    before_keys = gui.run("o = bpy.data.objects['Bar']; result = [o.data.shape_keys is None, "
+                          "[m.name for m in o.modifiers]]")
+    gui.run("watch_panels()")
+    assert gui.run("with override():\n"
+                   "    result = sorted(bpy.ops.rs_elastic.simulate('INVOKE_DEFAULT'))") == \
+        ["RUNNING_MODAL"]
+    gui.run(_operator("rs_elastic.simulate") + WATCH)
+    _check_bar(*_wait_for_progress(gui, "rs_elastic.simulate", "RS_ELASTIC_PT_simulate", 0.0))
+
+    # Press Esc just after a frame started: stopping only between frames would wait for all of it.
+    gui.wait_for("len(TIMES['frames']) >= 2", timeout=300)
+    done = gui.run("result = len(TIMES['frames'])")
+    gui.wait_for(f"len(TIMES['frames']) > {done}", timeout=120, interval=0.005)
+    pressed = time.monotonic()
+    gui.key("Escape")
+    delivered = time.monotonic() - pressed      # the key has reached X by the time xdotool returns
+    _wait_until_ended(gui, "rs_elastic.simulate")
+    times = gui.run("result = TIMES")
+    assert len(times["cancel"]) == 1 and len(times["cleanup"]) == 1, times
+    latency = sum(times["cleanup"][0]) - pressed
+    heard = times["cancel"][0][0] - pressed               # the modal operator got the Esc
+    stopped = sum(times["frames"][-1]) - pressed          # the worker's interrupted frame ended
+    frame = max(duration for _, duration in times["frames"])
+    substep = max(duration for _, duration in times["substeps"])
+    poll = gui.run("result = sys.modules['bl_ext.user_default.rs_elastic.bridge.jobs'].POLL")
+    # Bound: the key's delivery, then at most the substep running when the flag was set and one
+    # more (the check is before each), then one modal timer period to notice the ended worker.
+    bound = delivered + 2 * substep + poll
+    print(f"\nEsc latency {1000 * latency:.0f} ms: heard after {1000 * heard:.0f} ms, worker "
+          f"stopped after {1000 * stopped:.0f} ms (key delivery {1000 * delivered:.0f} ms; longest "
+          f"frame {1000 * frame:.0f} ms, longest substep {1000 * substep:.1f} ms over "
+          f"{len(times['substeps'])} substeps; bound {1000 * bound:.0f} ms)")
+    assert frame > 2 * bound, f"frames too short ({frame:.3f} s) to tell a substep's stop"
+    assert latency < bound, f"Esc took {latency:.3f} s to end the simulation (bound {bound:.3f} s)"
+
+    reports = gui.run("result = reports()")
+    assert any("Simulate and Bake: cancelled, nothing was changed" in line
+               for line in reports), reports
+    after = body_state(gui)
+    assert {k: v for k, v in after.items() if k != "cache"} == \
+        {k: v for k, v in before.items() if k != "cache"}
+    assert gui.run("o = bpy.data.objects['Bar']; result = [o.data.shape_keys is None, "
+                   "[m.name for m in o.modifiers]]") == before_keys
