@@ -397,10 +397,18 @@ def test_a_default_solidify_on_a_closed_bar_stops_at_the_time_limit(ext):
 
 
 def panel_estimate():
-    """The Tet Mesh panel's estimate line (the same in each editor that shows the panel)."""
-    lines = {text for kind, text in draw_all() if kind == "label" and "fTetWild meshes" in text}
-    assert len(lines) == 1, lines
-    return lines.pop()
+    """The Tet Mesh panel's estimate sentence (the same in each editor that shows the panel).
+    The panel wraps it into short labels (panels/body.py draw_lines, breaking at spaces and after
+    ': '); it ends with the time limit's ')'."""
+    labels = [text for kind, text in draw_all() if kind == "label"]
+    sentences = set()
+    for start in (i for i, text in enumerate(labels) if text.startswith("fTetWild meshes")):
+        parts = [labels[start]]
+        while not parts[-1].endswith(")") and start + len(parts) < len(labels):
+            parts.append(labels[start + len(parts)])
+        sentences.add(" ".join(parts))
+    assert len(sentences) == 1, sentences
+    return sentences.pop()
 
 
 def test_the_estimate_counts_what_the_modifiers_make(ext):
@@ -444,7 +452,9 @@ def test_a_dense_open_surface_is_refused_at_once_with_its_estimate(ext):
     assert ext.bridge.estimates.mesh_estimate(sphere, sphere.rs_elastic) == (triangles, triangles)
     assert panel_estimate() == (f"fTetWild meshes all {triangles:,} triangles (not a closed "
                                 f"manifold, so no proxy): roughly {seconds:.0f} s (limit 10 s)")
-    assert ("label", "Over the Time Limit: a new tet mesh is refused") in draw_all()
+    drawn = draw_all()                                  # the line, wrapped after its ': '
+    assert ("label", "Over the Time Limit:") in drawn
+    assert ("label", "a new tet mesh is refused") in drawn
     start = time.monotonic()
     message = refusal(bpy.ops.rs_elastic.prepare)
     assert time.monotonic() - start < 10.0
