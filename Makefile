@@ -145,9 +145,13 @@ test-farm: venv $(LINUX_ZIP) flamenco
 demo: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZIP=$(LINUX_ZIP) $(PY) tools/demo.py --output demo_output
 
+# The bench's before/after rows measure the solver of BENCH_BASELINE (main before the speed work
+# of Prepare, the cubature, the space-time solve and the dynamics) against the current one.
+BENCH_BASELINE ?= e08decd
+
 bench: deps $(LINUX_ZIP) flamenco
 	FLAMENCO_SRC=$(FLAMENCO_SRC) FLAMENCO_BIN=$(FLAMENCO_BIN) \
-	    PYTHONPATH=.deps:. $(PY) bench/run_bench.py --output bench_output
+	    PYTHONPATH=.deps:. $(PY) bench/run_bench.py --output bench_output --baseline $(BENCH_BASELINE)
 
 clean:
 	rm -rf dist build demo_output bench_output .pytest_cache

@@ -6,6 +6,7 @@ clock on this machine; compare ratios within one run only.
     python bench/run_bench.py --output bench_output [--quick]
     python bench/run_bench.py --child pins box      # one case alone, its JSON row on stdout
     python bench/run_bench.py --farm                # the farm row alone
+    python bench/run_bench.py --baseline REV --compare-only   # before/after rows alone
 """
 import argparse
 import json
@@ -1013,9 +1014,9 @@ def farm_table(row):
     return "\n".join(lines) + "\n"
 
 
-def run_child(case, arg):
+def run_child(case, arg, env=None):
     out = subprocess.run([sys.executable, __file__, "--child", case, arg],
-                         capture_output=True, text=True, cwd=ROOT)
+                         capture_output=True, text=True, cwd=ROOT, env=env)
     if out.returncode != 0:
         return dict(case=case, arg=arg, error=(out.stderr.strip().splitlines() or ["?"])[-1])
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -1033,6 +1034,29 @@ def table(title, rows, columns):
     return "\n".join(lines) + "\n"
 
 
+# Rows measured with the baseline's solver and the current one back to back (--baseline REV):
+# (case, arg, the figures compared; a trailing * matches every index of a list of rows).
+COMPARED = [
+    ("reduced_rs", "10k", ["prepare_seconds", "cubature_seconds", "basis_seconds", "max_error"]),
+    ("dynamics", "20", ["steps_per_second", "stvk_steps_per_second", "prepare_seconds"]),
+    ("spacetime", "20:200,400", ["rows[*"]),
+]
+
+
+def run_comparison(revision, quick=False):
+    """[{case, arg, keys, baseline: row, current: row}] of COMPARED, each pair back to back."""
+    import baseline
+    pairs = []
+    with baseline.exported_solver(ROOT, revision) as old_root:
+        old_env = baseline.child_environment(old_root, ROOT / ".deps")
+        new_env = baseline.child_environment(ROOT, ROOT / ".deps")
+        for case, arg, keys in COMPARED[:1] if quick else COMPARED:
+            pairs.append(dict(case=case, arg=arg, keys=keys,
+                              baseline=run_child(case, arg, env=old_env),
+                              current=run_child(case, arg, env=new_env)))
+    return pairs
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--output", default="bench_output")
@@ -1040,6 +1064,10 @@ def main():
     parser.add_argument("--quick", action="store_true", help="smallest sizes only")
     parser.add_argument("--farm", action="store_true",
                         help="only the farm row (needs `make build flamenco`)")
+    parser.add_argument("--baseline", metavar="REV",
+                        help="also measure COMPARED's rows with the solver of git revision REV")
+    parser.add_argument("--compare-only", action="store_true",
+                        help="only the before/after rows of --baseline")
     args = parser.parse_args()
     if args.child:
         print(json.dumps(CASES[args.child[0]](args.child[1])))
@@ -1048,6 +1076,18 @@ def main():
         row = run_farm_shot()
         print(json.dumps(row))
         print(farm_table(row))
+        return
+    if args.compare_only:
+        if not args.baseline:
+            parser.error("--compare-only needs --baseline REV")
+        import baseline
+        pairs = run_comparison(args.baseline, args.quick)
+        output = pathlib.Path(args.output)
+        output.mkdir(parents=True, exist_ok=True)
+        (output / "comparison.json").write_text(json.dumps(pairs, indent=2))
+        text = baseline.comparison_table(pairs, args.baseline)
+        (output / "comparison.md").write_text(text)
+        print(text)
         return
 
     meshes = sorted(p.name for p in MESHES.iterdir())
@@ -1135,6 +1175,11 @@ def main():
     results["farm"] = run_farm_shot()
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + farm_table(results["farm"])
+    if args.baseline:
+        import baseline
+        results["comparison"] = run_comparison(args.baseline, args.quick)
+        (output / "results.json").write_text(json.dumps(results, indent=2))
+        text += "\n" + baseline.comparison_table(results["comparison"], args.baseline)
     (output / "results.md").write_text(text)
     print(text)
 

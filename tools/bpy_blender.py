@@ -10,9 +10,11 @@ code is this program's. The extension must be installed and enabled in the Blend
 that BLENDER_USER_RESOURCES names, as on a worker with Blender. A real Blender takes the same
 arguments: point the Flamenco Manager's `blender` variable at it instead of tools/bpy-blender.
 
-Test instrumentation: with RS_ELASTIC_RECORD_POSES set to a folder, every bake's float64 poses (as
-handed to bridge.bake.write_bake, before a .pc2 or shape keys round them to float32) are saved
-there as <.blend name>.<object>.npy, so that bakes can be compared to better than float32.
+Test instrumentation: with RS_ELASTIC_RECORD_POSES set to a folder, the float64 poses of every
+`-c rs_elastic bake` (as handed to bridge.bake.write_bake, before a .pc2 or shape keys round them
+to float32) are saved there as <.blend name>.<object>.npy, so that bakes can be compared to better
+than float32. Other commands are not recorded: `collect` writes bakes again from their float32
+files, and would overwrite a bake's record with its float32 rounding.
 """
 import os
 import sys
@@ -50,8 +52,6 @@ def run(argv):
         return 1
     ext = blender_session.start(user_dir=user_dir)
     import bpy
-    if os.environ.get("RS_ELASTIC_RECORD_POSES"):
-        record_poses(ext, os.environ["RS_ELASTIC_RECORD_POSES"])
     failure_code, args = 0, list(argv)
     while args:
         arg = args.pop(0)
@@ -61,6 +61,8 @@ def run(argv):
             if not args or args[0] != "rs_elastic":
                 print(f"bpy-blender: unknown command {args[:1]}: only rs_elastic", file=sys.stderr)
                 return 1
+            if os.environ.get("RS_ELASTIC_RECORD_POSES") and args[1:2] == ["bake"]:
+                record_poses(ext, os.environ["RS_ELASTIC_RECORD_POSES"])
             return ext.bridge.cli.main(args[1:])
         if arg == "--python-exit-code":
             failure_code = int(args.pop(0))

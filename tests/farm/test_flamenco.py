@@ -3,10 +3,9 @@ through the Flamenco add-on with the rs-elastic-bake job type (farm/rs_elastic_b
 into the manager's scripts folder by the extension's operator). The worker's Blender is
 tools/bpy-blender, and so is the command line the bakes are compared with: the same bakes run one
 after another on a copy of the same file. Bakes are compared as float64 poses (recorded by
-tools/bpy-blender) to 1e-10 of each body's diagonal, or to its solver's tolerance for the bodies
-whose bakes came out a solver step apart (see ITERATIVE), and each bake the collected shot plays
-(a .pc2, or shape keys) holds exactly the farm's poses in float32. Each body's file is the one
-its job named at submission (the plan's `bake_file`).
+tools/bpy-blender for its `bake` commands) to 1e-10 of each body's diagonal, and each bake the
+collected shot plays (a .pc2, or shape keys) holds exactly the farm's poses in float32. Each
+body's file is the one its job named at submission (the plan's `bake_file`).
 
 Every wait is bounded and fails with the manager's account of the job; the manager and the
 worker are stopped (their process groups killed) on every way out."""
@@ -31,18 +30,6 @@ JOB_TYPE = "rs-elastic-bake"
 PLAN = [("Slab", "simulate", []), ("Drop", "simulate", ["Slab"]), ("Whip", "spacetime", ["Slab"])]
 JOB_TIMEOUT = 420           # seconds for a whole job on one worker
 TOLERANCE = 1e-10           # of a body's diagonal
-# Slab's bakes came out bit for bit. Drop (a simulation with contact: Newton stops once a step
-# moves it by less than 1e-5 of its diagonal, solver/dynamics.py) and Whip (a space-time solve:
-# Gauss-Newton with line searches), baked by the worker, came out 1.4e-7 and 5.7e-8 of their
-# diagonals from the command line's bakes on every run, also with BLAS on one thread on both
-# sides. The farm's own command lines (--bake-file, --with-bake, --no-save, in the plan's order)
-# run one after another outside Flamenco matched the command line bit for bit, from another
-# working folder, with a longer environment, and with the submitting Blender's tet-mesh cache;
-# Drop's collider mesh, as its simulation reads it, was the same to the bit in both. The
-# difference arises inside those iterative solves, within their tolerance: they are held to 1e-5
-# of the diagonal, 5000 times below what Slab's bake changes in them (checked below).
-ITERATIVE = {"Drop", "Whip"}
-ITERATIVE_TOLERANCE = 1e-5
 # BLAS on one thread in the worker's Blender and the command line's alike: a product's rounding
 # depends on how many threads split it (Whip's command-line bake moved by 7e-11 of its diagonal
 # between one and two BLAS threads), so both sides use the same count.
@@ -129,7 +116,7 @@ def diagonal(pose):
 
 def assert_same_bake(farm_poses, local_poses, name):
     size = diagonal(local_poses[0])
-    bound = (ITERATIVE_TOLERANCE if name in ITERATIVE else TOLERANCE) * size
+    bound = TOLERANCE * size
     difference = float(np.abs(farm_poses - local_poses).max())
     print(f"{name}: farm against command line {difference:.3g} m = {difference / size:.3g} of "
           f"its diagonal (bound {bound:.3g} m)")
