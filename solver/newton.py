@@ -11,7 +11,11 @@ step is already below tolerance, uses the Gauss-Newton Hessian J^T H_q J + hess 
 g = dE/dq (``GeometricStiffness``): Gauss-Newton converges only linearly once gravity or
 inertia loads a strongly rotated pose (a small soft jelly at h = 1/24 needed 5-15 iterations,
 2-3 with it), while a stiffer or larger body converges in two Gauss-Newton iterations and never
-pays for the extra term. The free body's best-rotation curvature is left out. Linear systems by
+pays for the extra term. The free body's best-rotation curvature is left out. J itself, an
+(rB, 9C) x (9C, m) product over the cubature, is the costliest part of an iteration, so
+``minimise`` forms it once per step: later iterations take the exact gradient J^T g from the
+deformer's ``q_gradient`` (no J) with the first iterate's J in the Hessian, and form J afresh
+only when that step does not already end the iterations. Linear systems by
 Cholesky; an indefinite full Hessian (buckling, StVK in compression) falls back to
 Gauss-Newton, regularised by a multiple of its diagonal if even that is indefinite. Iterations
 stop once a step moves the body by less than a tolerance (its squared mass norm, ``step_tol2``
