@@ -379,7 +379,8 @@ class Simulation:
         plan = self.scheme.plan(self, end)
         model = self._inertia(plan, end)
         if self.contact is None:
-            s, q, iterations = self.solver.minimise(model, plan.guess, plan.damping)
+            s, q, iterations = self.solver.minimise(model, plan.guess, plan.damping,
+                                                    q=plan.guess_q)
             R, c = frames.best_frame(self.moments, model, plan.target, q) if self.free else end
         elif self.free:
             self._begin_contact(plan)

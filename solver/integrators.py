@@ -133,7 +133,8 @@ class StepPlan:
     """One step's objective as a scheme makes it: inertia weight w [1/s^2] and target (a world
     ``frames.Field`` x_hat, or q_hat (rB,) in a fixed frame, which adds its loads itself); mass
     damping (k [1/s], e (rB,)) as k/2 q^T M_B q + e.q; the stiffness damping
-    (``newton.Damping``); the first guess s (m,); Newmark's pushed-forward q_dot (rB,)."""
+    (``newton.Damping``); the first guess s (m,); Newmark's pushed-forward q_dot (rB,) and
+    q(guess) (rB,) when the scheme has it at hand (None: the solver evaluates it)."""
 
     weight: float
     target: object
@@ -141,6 +142,17 @@ class StepPlan:
     damping: newton.Damping
     guess: np.ndarray
     body_velocity: np.ndarray = None
+    guess_q: np.ndarray = None
+
+
+def _q_rows(deformer, s, shifts):
+    """q(s + shift) (k, rB) for shifts [(m,)...], in one ``q_batch`` call where the deformer
+    has one (the per-call overhead of the cubature's RS map is paid once)."""
+    if not shifts:
+        return []
+    points = s + np.array(shifts)
+    batch = getattr(deformer, "q_batch", None)
+    return batch(points) if batch is not None else [deformer.q(p) for p in points]
 
 
 def trapezoidal(rates, delta, dt):
@@ -193,7 +205,7 @@ class NewmarkScheme:
         """Rates of a body at rest in its frame at the current pose."""
         return self.start(sim, np.zeros(sim.num_coords), np.zeros(3), np.zeros(3))
 
-    def body_rates(self, sim, pose, rates, J=None):
+    def body_rates(self, sim, pose, rates, J=None, with_guess=False):
         """(v_q, a_q) (rB,): q_dot = J v_s and q_ddot = J a_s + kappa at the pose,
         kappa = d^2 q/ds^2 (v_s, v_s) the curvature of the RS map along the motion.
 
@@ -202,22 +214,27 @@ class NewmarkScheme:
         feed energy into large rotations. Without J: by central differences of q(s), over
         s +- dt v_s (J v_s and kappa, errors O(dt^2) like the scheme's) and s +- dt^2/4 a_s
         (J a_s, the displacement a_s makes in x_hat): four q evaluations cost a fraction of one
-        Jacobian, and they are exact for a linear map.
+        Jacobian, and they are exact for a linear map. with_guess: also return q at the
+        predictor s + dt v_s (evaluated here anyway), the step's first Newton iterate.
         """
         s, q, v, a, dt = pose.coords, pose.q, rates.velocity, rates.acceleration, sim.dt
-        q_of = sim.deformer.q
+        eps = 0.25 * dt ** 2
+        shifts = ([eps * a, -eps * a] if J is None and a.any() else []) + (
+            [dt * v, -dt * v] if v.any() else [])
+        at = _q_rows(sim.deformer, s, shifts)            # one batched evaluation of q(s)
         if J is not None:
             v_q, a_q = J @ v, J @ a
         else:
             v_q, a_q = np.zeros(len(q)), np.zeros(len(q))
             if a.any():
-                eps = 0.25 * dt ** 2
-                a_q = (q_of(s + eps * a) - q_of(s - eps * a)) / (2 * eps)
+                a_q = (at[0] - at[1]) / (2 * eps)
         if v.any():
-            ahead, behind = q_of(s + dt * v), q_of(s - dt * v)
+            ahead, behind = at[-2], at[-1]
             a_q = a_q + (ahead - 2.0 * q + behind) / dt ** 2
             if J is None:
                 v_q = (ahead - behind) / (2.0 * dt)
+        if with_guess:
+            return v_q, a_q, (at[-2] if v.any() else q)
         return v_q, a_q
 
     def frame_rates(self, sim, pose, rates):
@@ -261,7 +278,7 @@ class NewmarkScheme:
         pose, rates, dt = sim.state.pose, sim.state.carried, sim.dt
         if sim.frame_motion is not None:
             self.follow_frame(sim, *end)
-        v_q, a_q = self.body_rates(sim, pose, rates)
+        v_q, a_q, guess_q = self.body_rates(sim, pose, rates, with_guess=True)
         v_damped = rates.velocity - 0.5 * rates.kick     # the velocity the damping sees
         damped_q = v_q - 0.5 * rates.kick_q
         if sim.fixed_frame:
@@ -272,7 +289,7 @@ class NewmarkScheme:
         damping = newton.Damping(2.0 * sim.beta / dt * K0, sim.beta * (K0 @ v_damped),
                                  pose.coords)
         return StepPlan(4.0 / dt ** 2, target, (k, -(M @ (k * pose.q + sim.alpha * damped_q))),
-                        damping, pose.coords + dt * rates.velocity, v_q)
+                        damping, pose.coords + dt * rates.velocity, v_q, guess_q)
 
     def target(self, sim, pose, rates, v_q, a_q):
         """x_hat = x_n + dt v_n + dt^2/4 (a_n + g) as a world field, v and a pushed forward:

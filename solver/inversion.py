@@ -156,7 +156,9 @@ class VolumeBarrier:
     strain_modes U (E, 6, m): strain per unit s of every tet (rows 3:9 of ``rs.linear_rs``);
     volumes (E,) [m^3]; stiffness kappa [Pa], a number or (E,) per tet; j_hat in (0, 1): the
     volume ratio below which it acts. Build with ``for_material`` to get kappa = BARRIER_SCALE *
-    the material's bulk modulus.
+    the material's bulk modulus. ``evaluate`` computes the strains of only the tets its
+    ``StrainScreen`` cannot clear (the others are exactly zero), so a step near rest or moving
+    little from the last all-tet evaluation costs O(E / SCREEN_BLOCK) instead of O(E).
     """
 
     def __init__(self, strain_modes, volumes, stiffness, j_hat=J_HAT):
@@ -168,6 +170,7 @@ class VolumeBarrier:
         self._flat = self.strain_modes.reshape(-1, self.num_coords)              # (6E, m)
         self.weights = stiffness * np.abs(np.asarray(volumes, dtype=np.float64))
         self.stiffness, self.j_hat = stiffness, float(j_hat)
+        self._screen = StrainScreen(self.strain_modes, self.j_hat)
 
     @classmethod
     def for_material(cls, material, modal_rs, volumes, j_hat=J_HAT):
@@ -186,15 +189,23 @@ class VolumeBarrier:
         Only tets with J_e < j_hat contribute (the rest is exactly zero). project: clamp each
         active tet's 6x6 Hessian to positive semidefinite (False: the exact Hessian).
         """
-        m = self.num_coords
-        strain = (self._flat @ np.asarray(s, dtype=np.float64)).reshape(-1, 6)
-        J = stretch_determinants(strain, 0)[0]
-        active = np.flatnonzero(J < self.j_hat)
+        m, s = self.num_coords, np.asarray(s, dtype=np.float64)
+        near = self._screen.candidates(s)          # the other tets are surely inactive
+        if near is None:                           # all tets, and a new reference
+            strain = (self._flat @ s).reshape(-1, 6)
+            J = stretch_determinants(strain, 0)[0]
+            self._screen.refresh(s, strain, J)
+            near = np.arange(len(J))
+        else:
+            strain = (self.strain_modes[near].reshape(-1, m) @ s).reshape(-1, 6)
+            J = stretch_determinants(strain, 0)[0]
+        active = near[J < self.j_hat]
+        strain = strain[J < self.j_hat]
         grad = np.zeros(m) if order >= 1 else None
         hess = np.zeros((m, m)) if order >= 2 else None
         if len(active) == 0:
             return 0.0, grad, hess
-        J, dJ, d2J = stretch_determinants(strain[active], order)
+        J, dJ, d2J = stretch_determinants(strain, order)
         b, db, d2b = barrier_function(J, self.j_hat)
         w = self.weights[active]
         value = float(w @ b)
@@ -210,6 +221,77 @@ class VolumeBarrier:
         HU = (w[:, None, None] * H) @ U
         hess = U.reshape(-1, m).T @ HU.reshape(-1, m)
         return value, grad, 0.5 * (hess + hess.T)
+
+
+# |eps|_F^2 = sum_k FROBENIUS_WEIGHTS_k e_k^2 for strain components [xx, xy, xz, yy, yz, zz].
+FROBENIUS_WEIGHTS = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+SCREEN_BLOCK = 64        # tets per block of ``StrainScreen``
+SCREEN_REFRESH = 0.125   # share of the tets past which the screen takes a new reference
+
+
+class StrainScreen:
+    """The tets whose RS stretch J_e = det(I + U_e s) may be below j at s (m,), found from a
+    reference pose s_ref at which every tet's strain and J are known, in O(E / SCREEN_BLOCK m)
+    per call instead of the O(E m) of all strains.
+
+    Bound: |eps_e(s) - eps_e(s_ref)|_F <= sum_k |s_k - s_ref,k| c_ek with c_ek =
+    |eps(U_e[:, k])|_F (one unit of mode k), and for 3x3 S, |D|_F <= r:
+    det(S + D) >= det S - r |cof S|_F - r^2 |S|_F - r^3 / sqrt(27) (expanding det by columns),
+    so J_e stays >= j (and S positive definite, det never crossing 0 along the segment) while
+    the change is below the margin r_e that keeps each term under a third of J_e,ref - j.
+    Tets are screened in fixed blocks of SCREEN_BLOCK (bound: the block's largest c_ek per
+    mode, its smallest margin). When the candidates pass SCREEN_REFRESH of all tets, the
+    caller evaluates them all and ``refresh`` makes that pose the new reference.
+    """
+
+    def __init__(self, strain_modes, j):
+        unit = np.sqrt(np.einsum("k,ekm->em", FROBENIUS_WEIGHTS, strain_modes ** 2))  # (E, m)
+        self.num_tets, self.j = len(unit), float(j)
+        self.starts = np.arange(0, self.num_tets, SCREEN_BLOCK)
+        self.block_bounds = (np.maximum.reduceat(unit, self.starts, axis=0) if self.num_tets
+                             else np.zeros((0, unit.shape[1])))                  # (blocks, m)
+        self.reference = None
+        self.block_margins = None
+
+    def refresh(self, s, strain, J):
+        """Make s (m,) the reference, with every tet's strain (E, 6) and J (E,) there."""
+        a, b, c = 1.0 + strain[:, 0], strain[:, 1], strain[:, 2]
+        d, e, f = 1.0 + strain[:, 3], strain[:, 4], 1.0 + strain[:, 5]
+        cof2 = ((d * f - e * e) ** 2 + (a * f - c * c) ** 2 + (a * d - b * b) ** 2
+                + 2.0 * ((c * e - b * f) ** 2 + (b * e - c * d) ** 2 + (b * c - a * e) ** 2))
+        S2 = a * a + d * d + f * f + 2.0 * (b * b + c * c + e * e)           # |S|_F^2
+        margin = _cubic_margin(J - self.j - 1e-12 * np.maximum(1.0, np.abs(J)),
+                               np.sqrt(cof2), np.sqrt(S2), 1.0 / np.sqrt(27.0))
+        self.block_margins = np.minimum.reduceat(margin, self.starts) * (1.0 - 1e-9)
+        self.reference = np.array(s, dtype=np.float64)
+
+    def candidates(self, s):
+        """Sorted indices of the tets whose J may be below j at s (m,); None when they pass
+        SCREEN_REFRESH of all tets, or there is no reference yet (evaluate all, ``refresh``)."""
+        if self.reference is None:
+            return None
+        reach = self.block_bounds @ np.abs(s - self.reference)
+        blocks = np.flatnonzero(reach >= self.block_margins)
+        if len(blocks) * SCREEN_BLOCK > SCREEN_REFRESH * self.num_tets:
+            return None
+        rows = (blocks[:, None] * SCREEN_BLOCK + np.arange(SCREEN_BLOCK)).reshape(-1)
+        return rows[rows < self.num_tets]
+
+
+def _cubic_margin(slack, a, b, c, newton_steps=4):
+    """(E,) a largest-known r >= 0 with a r + b r^2 + c r^3 <= slack (a, b, c > 0), -1 where
+    slack <= 0. Safe start: each term at most slack / 3; then Newton from slack / a, which
+    is above the root and descends to it on this convex function, kept where it checks."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        room = np.maximum(slack, 0.0)
+        safe = np.minimum.reduce([room / (3.0 * a), np.sqrt(room / (3.0 * b)),
+                                  np.cbrt(room / (3.0 * c))])
+        r = room / a
+        for _ in range(newton_steps):
+            r = r - (r * (a + r * (b + r * c)) - room) / (a + r * (2.0 * b + 3.0 * c * r))
+        r = r * (1.0 - 1e-9)
+        r = np.where(r * (a + r * (b + r * c)) <= room, np.maximum(r, safe), safe)
+    return np.where(slack > 0.0, np.nan_to_num(r, nan=-1.0), -1.0)
 
 
 def _positive_stiffness(stiffness):
@@ -402,5 +484,5 @@ class DeformedVolumes:
 def _edge_determinants(x, tets):
     """(E,) det [x_b - x_a, x_c - x_a, x_d - x_a] (6 times the signed volume)."""
     a = x[tets[:, 0]]
-    e1, e2, e3 = x[tets[:, 1]] - a, x[tets[:, 2]] - a, x[tets[:, 3]] - a
-    return np.einsum("ei,ei->e", e1, np.cross(e2, e3))
+    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = ((x[tets[:, k]] - a).T for k in (1, 2, 3))
+    return x1 * (y2 * z3 - z2 * y3) + y1 * (z2 * x3 - x2 * z3) + z1 * (x2 * y3 - y2 * x3)

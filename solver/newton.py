@@ -11,7 +11,11 @@ step is already below tolerance, uses the Gauss-Newton Hessian J^T H_q J + hess 
 g = dE/dq (``GeometricStiffness``): Gauss-Newton converges only linearly once gravity or
 inertia loads a strongly rotated pose (a small soft jelly at h = 1/24 needed 5-15 iterations,
 2-3 with it), while a stiffer or larger body converges in two Gauss-Newton iterations and never
-pays for the extra term. The free body's best-rotation curvature is left out. Linear systems by
+pays for the extra term. The free body's best-rotation curvature is left out. J itself, an
+(rB, 9C) x (9C, m) product over the cubature, is the costliest part of an iteration, so
+``minimise`` forms it once per step: later iterations take the exact gradient J^T g from the
+deformer's ``q_gradient`` (no J) with the first iterate's J in the Hessian, and form J afresh
+only when that step does not already end the iterations. Linear systems by
 Cholesky; an indefinite full Hessian (buckling, StVK in compression) falls back to
 Gauss-Newton, regularised by a multiple of its diagonal if even that is indefinite. Iterations
 stop once a step moves the body by less than a tolerance (its squared mass norm, ``step_tol2``
@@ -78,26 +82,41 @@ class StepSolver:
         value = model.evaluate(q, 0)[0] + self.potential.evaluate(s, 0)[0]
         return value + damping.value(s)
 
-    def minimise(self, model, s, damping, max_iterations=None):
-        """Newton / line search on s from the guess s; returns (s, q(s), iterations)."""
-        q = self.deformer.q(s)
+    def minimise(self, model, s, damping, max_iterations=None, q=None):
+        """Newton / line search on s from the guess s (q: q(s) if known); returns
+        (s, q(s), iterations)."""
+        q = self.deformer.q(s) if q is None else q
         f = self.objective(model, s, q, damping)
-        iterations = 0
+        iterations, J = 0, None
         for iterations in range(1, (max_iterations or self.max_iterations) + 1):
-            J = self.deformer.q_jacobian(s)
             _, gq, Hq = model.evaluate(q, 2)
             _, gV, HV = self.potential.evaluate(s, 2)
-            grad = J.T @ gq + gV + damping.matrix @ (s - damping.start) - damping.force
+            own = gV + damping.matrix @ (s - damping.start) - damping.force
+            fresh = J is None
+            if fresh:                                 # the step's first iterate
+                J = self.deformer.q_jacobian(s)
+                grad, inertia = J.T @ gq + own, J.T @ (Hq @ J)
+            else:                                     # the exact gradient, without dq/ds
+                grad = self._q_gradient(s, gq) + own
+                if Hq is not used:                    # e.g. contact: its Hessian moved
+                    inertia = J.T @ (Hq @ J)
+            used = Hq
             if not grad.any():
                 break
-            gauss_newton = J.T @ (Hq @ J) + HV + damping.matrix
-            step = newton_step(gauss_newton, grad)
-            moved = J @ step
-            small = float(moved @ (self.mass_matrix @ moved)) <= self.step_tol2
-            if not small and iterations > 1 and self.geometric is not None:
-                # Gauss-Newton was not enough: its convergence is only linear here, so take
-                # the true Newton step (kept Gauss-Newton if that Hessian is indefinite).
-                step = newton_step(gauss_newton + self.geometric(s, gq), grad, step)
+            step = newton_step(inertia + HV + damping.matrix, grad)
+            small = self._moved2(J, step) <= self.step_tol2
+            if not small and not fresh:
+                # Not converged in one step: refresh dq/ds here (the Hessian above used the
+                # first iterate's) and, for a ReducedRS, take the true Newton step, since
+                # Gauss-Newton converges only linearly here (kept Gauss-Newton if that
+                # Hessian is indefinite).
+                J = self.deformer.q_jacobian(s)
+                inertia = J.T @ (Hq @ J)
+                gauss_newton = inertia + HV + damping.matrix
+                step = newton_step(gauss_newton, grad)
+                small = self._moved2(J, step) <= self.step_tol2
+                if not small and self.geometric is not None:
+                    step = newton_step(gauss_newton + self.geometric(s, gq), grad, step)
             s_new, q_new, f_new = self._line_search(model, s, f, step, float(grad @ step),
                                                     damping)
             if s_new is None:                      # no decrease possible: at round-off level
@@ -106,6 +125,17 @@ class StepSolver:
             if small:
                 break
         return s, q, iterations
+
+    def _q_gradient(self, s, g):
+        """(dq/ds)^T g (m,) at s: the deformer's own product where it has one
+        (``reduced.ReducedRS.q_gradient``), else through its Jacobian."""
+        product = getattr(self.deformer, "q_gradient", None)
+        return product(s, g) if product is not None else self.deformer.q_jacobian(s).T @ g
+
+    def _moved2(self, J, step):
+        """Squared mass norm [kg m^2] of the motion J step (rB,) of a step in s."""
+        moved = J @ step
+        return float(moved @ (self.mass_matrix @ moved))
 
     def _line_search(self, model, s, f, step, slope, damping):
         """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None)."""

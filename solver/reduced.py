@@ -579,6 +579,18 @@ class ReducedRS:
         """dq/dz (rB, m) = offset + sum_C w_e P_e (db/dy)_e (QW)_e (analytic, SPEC section 4)."""
         return self.q_jacobian_batch(np.asarray(z, dtype=np.float64)[None])[0]
 
+    def q_gradient(self, z, g):
+        """(dq/dz)^T g (m,) for g (rB,) without forming dq/dz: g goes back through the
+        cubature (9C,) and each tet's 9x9 RS-map derivative. O(rB C + C m), a fraction of
+        ``q_jacobian``'s O(rB C m) (the dynamics' Newton iterations after the first)."""
+        y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])
+        _, R, J_l, EF = _rs_map(y, True)
+        lam = (np.asarray(g, dtype=np.float64) @ self._weighted).reshape(-1, 9)   # (C, 9)
+        g_omega = np.einsum("nj,nji->ni", np.einsum("nk,nkj->nj", lam, EF), J_l)
+        g_eps = np.einsum("nk,nkj->nj", lam, (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6))
+        g_y = np.concatenate([g_omega, g_eps], axis=1).reshape(-1)
+        return g @ self._offset + g_y @ self._modal_rs_flat
+
     def q_batch(self, Z, chunk=256):
         """q for many frames: Z (F, m) -> (F, rB); frames are processed ``chunk`` at a time."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))

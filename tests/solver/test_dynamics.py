@@ -547,6 +547,18 @@ def test_rs_map_curvature_matches_finite_differences(soft_run):
     assert max(errors) < 1e-5
 
 
+def test_q_gradient_is_the_jacobian_transpose_product(soft_run):
+    """The Newton iterations after a step's first take (dq/ds)^T g from ReducedRS.q_gradient,
+    without dq/ds: it must equal J^T g, from rest to rotations past 120 deg."""
+    deformer = soft_run[0]["deformer"]
+    rng = np.random.default_rng(12)
+    for s in soft_run[1].coords[::12]:
+        g = rng.normal(size=deformer.basis_size)
+        expected = deformer.q_jacobian(s).T @ g
+        np.testing.assert_allclose(deformer.q_gradient(s, g), expected,
+                                   rtol=0.0, atol=1e-12 * np.abs(expected).max())
+
+
 # Interface -----------------------------------------------------------------------------------
 
 def test_run_reports_progress_and_cancels(bar):

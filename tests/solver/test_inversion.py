@@ -75,6 +75,32 @@ def test_projected_hessian_is_psd_and_exact_where_the_tet_hessians_are(random_ba
     assert np.allclose(inversion._clamp_psd(H), H, atol=1e-12 * np.abs(H).max())
 
 
+def test_screened_barrier_equals_the_all_tet_barrier():
+    """VolumeBarrier evaluates only the tets its StrainScreen cannot clear (blocks whose
+    strain bound from the last full evaluation may reach J_hat). Along a random walk in and
+    out of the active region its value, gradient and Hessian must equal those of a fresh
+    barrier's first (all-tet) evaluation, and the walk must take the screened path."""
+    rng = np.random.default_rng(5)
+    count, m = 3000, 6
+    scale = np.sort(np.exp(rng.uniform(-6.0, 0.0, count)))    # neighbours strain alike
+    U = rng.normal(size=(count, 6, m)) * scale[:, None, None]
+    volumes = rng.uniform(0.5, 1.5, count)
+    barrier = inversion.VolumeBarrier(U, volumes, 7.0)
+    s, screened, active = np.zeros(m), 0, 0
+    for _ in range(120):
+        s = s + rng.normal(size=m) * 0.01
+        near = barrier._screen.candidates(s)
+        screened += near is not None and len(near) < count
+        value, grad, hess = barrier.evaluate(s)
+        fresh = inversion.VolumeBarrier(U, volumes, 7.0).evaluate(s)
+        active += np.isfinite(fresh[0]) and fresh[0] > 0.0
+        np.testing.assert_allclose(value, fresh[0], rtol=1e-12)
+        np.testing.assert_allclose(grad, fresh[1], rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(hess, fresh[2], rtol=1e-12, atol=1e-300)
+    print(f"screened evaluations {screened} of 120, active barrier at {active}")
+    assert screened >= 20 and active >= 20
+
+
 def test_barrier_is_infinite_outside_the_positive_definite_stretches():
     """J <= 0, and J > 0 with two negative eigenvalues (unreachable without passing J = 0),
     are both infeasible: the value is +inf so a line search rejects them."""
