@@ -1056,7 +1056,8 @@ def table(title, rows, columns):
 # (case, arg, the figures compared; a trailing * matches every index of a list of rows).
 COMPARED = [
     ("reduced_rs", "10k", ["prepare_seconds", "cubature_seconds", "basis_seconds", "max_error"]),
-    ("dynamics", "20", ["steps_per_second", "stvk_steps_per_second", "prepare_seconds"]),
+    ("dynamics", "20", ["steps_per_second", "safe_steps_per_second", "stvk_steps_per_second",
+                        "prepare_seconds"]),
     ("spacetime", "20:200,400", ["rows[*"]),
 ]
 
