@@ -10,11 +10,12 @@ import numpy as np
 from . import rs, spacetime
 
 
-def poses_to_modal(body, poses):
+def poses_to_modal(body, poses, step=None):
     """Modal coordinates ẑ (k, m) of render-vertex poses (k, n, 3).
 
     Each pose's rotation branch is chained to the previous pose's, so a sequence that turns
-    on (a twist past 180°, a spin) stays continuous from pose to pose.
+    on (a twist past 180°, a spin) stays continuous from pose to pose. step(i), if given, is
+    called after pose i (progress; it may raise to stop).
     """
     X, T = body.nodes, body.tets
     reference, fitted = None, []
@@ -23,6 +24,8 @@ def poses_to_modal(body, poses):
         y, _ = rs.pose_to_rs(X, T, nodes, reference=reference, neighbours=body.neighbours)
         fitted.append(spacetime.pose_to_modal(body.modal_rs, body.volumes, y))
         reference = y[:, :3]
+        if step is not None:
+            step(len(fitted) - 1)
     return np.array(fitted).reshape(len(fitted), -1)
 
 

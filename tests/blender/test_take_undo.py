@@ -1,8 +1,11 @@
-"""Undo of Take from Animation and Fit Material (issue 28, item 3: the fitted material survives
-undo). The UI pushes an undo step after every operator flagged UNDO; background mode does not,
+"""Undo and Esc of Take from Animation and Fit Material (issue 28, item 3: the fitted material
+survives undo; long operators run as jobs with progress and Esc). The UI pushes an undo step after every operator flagged UNDO; background mode does not,
 so the test pushes them as the UI would. Oracle: the state before each operator, recorded here
-(the take's positions, the fitted material's arrays, the panel's lines), comes back exactly.
+(the take's positions, the fitted material's arrays, the panel's lines), comes back exactly;
+a fit cancelled on its worker thread keeps nothing.
 """
+import time
+
 import numpy as np
 import bpy
 
@@ -62,3 +65,43 @@ def test_undo_brings_back_the_previous_fit_then_the_previous_take(ext, body):
     np.testing.assert_array_equal(take, take_a)
     np.testing.assert_array_equal(fit.eigenvalues, fit_a.eigenvalues)
     assert lines == lines_a
+
+
+def test_a_fit_cancelled_on_its_worker_thread_keeps_nothing(ext, body):
+    """The fit as the UI runs it (the operator's modal Job; Esc calls job.cancel()): its
+    progress goes through the take's frames, then the solve's rounds; cancelled in the solve,
+    it raises Cancelled and the body keeps no fitted material, so Continue still refuses."""
+    source = copy_of(body)
+    hooked(source)
+    body.rs_elastic.take_source = source
+    make_active(body)
+    assert bpy.ops.rs_elastic.take_from_animation() == {'FINISHED'}
+    take, jobs = ext.bridge.take, ext.bridge.jobs
+    inputs = take.gather_fit(body, bpy.context.scene)
+    seen = []
+
+    def work(job):
+        step = job.step
+
+        def recorded(fraction, message):
+            seen.append((fraction, message))
+            step(fraction, message)
+        job.step = recorded
+        return take.fit_work(inputs, job)
+
+    job = jobs.Job(work)
+    job.start()
+    deadline = time.monotonic() + 120
+    while not job.message.startswith("round") and not job.done and time.monotonic() < deadline:
+        time.sleep(0.005)
+    job.cancel()
+    while not job.done:
+        time.sleep(0.01)
+    assert isinstance(job.error, jobs.Cancelled), job.error
+    assert take.fitted_material(body) is None
+    fractions = [fraction for fraction, _ in seen]
+    assert fractions == sorted(fractions) and 0.0 < fractions[0] and fractions[-1] < 1.0
+    assert seen[len(inputs.frames) - 1] == (take.FIT_READING,
+                                           f"reading the take's frame {len(inputs.frames)} of "
+                                           f"{len(inputs.frames)}")
+    assert seen[-1][1].startswith("round")
