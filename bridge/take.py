@@ -146,7 +146,8 @@ def gather_take(context, obj):
 def _frame_progress(job, count, start, end, what):
     """step(i) for ``solver.take.take_to_modal``: the job's fraction from start to end."""
     def step(index):
-        job.step(start + (end - start) * (index + 1) / count, f"{what} frame {index + 1} of {count}")
+        job.step(start + (end - start) * (index + 1) / count,
+                 f"{what} frame {index + 1} of {count}")
     return step
 
 

@@ -1,6 +1,7 @@
 """Undo and Esc of Take from Animation and Fit Material (issue 28, item 3: the fitted material
-survives undo; long operators run as jobs with progress and Esc). The UI pushes an undo step after every operator flagged UNDO; background mode does not,
-so the test pushes them as the UI would. Oracle: the state before each operator, recorded here
+survives undo; long operators run as jobs with progress and Esc). The UI pushes an undo step
+after every operator flagged UNDO; background mode does not, so the test pushes them as the UI
+would. Oracle: the state before each operator, recorded here
 (the take's positions, the fitted material's arrays, the panel's lines), comes back exactly;
 a fit cancelled on its worker thread keeps nothing.
 """
