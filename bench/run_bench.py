@@ -969,6 +969,84 @@ def rig_table(row):
 CASES["rig"] = case_rig
 
 
+def case_take(arg, stiffer=1.5, tip=0.8):
+    """Take from Animation, Fit Material and Continue at the solver level, as the operators call
+    it (``solver.take``); arg "MODES:FRAMES" (the bench row: 20 modes, 100 frames).
+
+    Body: the 10k-tet pinned 4:1:1 bar (E = 1e6 Pa, nu = 0.45, 1100 kg/m^3), default reduced RS
+    (setup, timed apart). Take: FRAMES frames of a free vibration of its modes with a material
+    ``stiffer`` times as stiff (Rayleigh 0.05, 0.002), from a first-mode bend whose tip moves
+    ``tip`` m (20 % of the length: rotations the linear regime would miss), as surface positions.
+    Timed: the take to modal coordinates (``take_to_modal``); the fit of all its frames; the
+    continuation over FRAMES more frames (``continue_motion`` and the surface positions). Errors
+    against the truth over the continued frames, for the fitted material and for the prepared
+    (uniform) one continued the same way, over the diagonal.
+    """
+    import numpy as np
+    from solver import meshgen, preparation, spacetime, take
+    num_modes, _, frames = arg.partition(":")
+    num_modes, frames = int(num_modes), int(frames or 100)
+    n, h = BAR_SIZES["10k"], 1.0 / 24.0
+    X, T = meshgen.box_tet_mesh((4.0, 1.0, 1.0), (4 * n, n, n))
+    start = time.perf_counter()
+    body = preparation.prepare_body(X, T, X, 1e6, 0.45, 1100.0, num_modes,
+                                    pinned=np.flatnonzero(X[:, 0] < 1e-9))
+    setup = time.perf_counter() - start
+    eigenvalues = stiffer * body.linear_modes.eigenvalues
+    damping = spacetime.rayleigh_damping(eigenvalues, 0.05, 0.002)
+    z0 = np.zeros(num_modes)
+    z0[0] = 1.0
+    z0 *= tip / np.abs(body.surface_positions(X, z0) - X).max()     # linear scale of the bend
+    truth = body.surface_positions(X, spacetime.simulate_modal(
+        eigenvalues, damping, z0, z0, 2 * frames, h, "average"))
+    keyed, after = np.arange(1, frames + 1), truth[frames:]
+
+    start = time.perf_counter()
+    inputs, residuals = take.take_to_modal(body, X, truth[:frames])
+    take_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    fitted = take.fit_material(body, X, keyed, truth[:frames], inputs, h, 0.05, 0.002)
+    fit_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    continued = body.surface_positions(X, take.continue_motion(fitted, frames))
+    continue_seconds = time.perf_counter() - start
+    uniform = take.fit_material(body, X, keyed, truth[:frames], inputs, h, 0.05, 0.002,
+                                optimise=False)
+    uniform_continued = body.surface_positions(X, take.continue_motion(uniform, frames))
+    diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+
+    def error(positions):
+        return float(np.sqrt(np.mean(np.sum((positions - after) ** 2, axis=2)))) / diagonal
+
+    return dict(modes=num_modes, fitted_modes=len(fitted.eigenvalues), frames=frames,
+                tets=len(T), vertices=len(X), setup_seconds=setup, take_seconds=take_seconds,
+                take_residual=float(residuals.max()) / diagonal, fit_seconds=fit_seconds,
+                fit_residual=fitted.residual / diagonal, converged=fitted.converged,
+                continue_seconds=continue_seconds, continued_error=error(continued),
+                uniform_error=error(uniform_continued), peak_rss_mb=peak_rss_mb())
+
+
+def take_table(row):
+    lines = ["## Take, Fit Material and Continue (10k-tet pinned bar, reduced RS, solver level; "
+             "a take of a 1.5x stiffer material, tip bent 20 % of the length)", "",
+             "| modes (fitted) | frames | take s | fit s | converged | continue s (as many frames) "
+             "| take residual / diag | fit residual / diag | continued error / diag: fitted, "
+             "uniform | setup s |", "|" + "---|" * 10]
+    if "error" in row:
+        lines.append(f"| error: {row['error']} |")
+    else:
+        lines.append(f"| {row['modes']} ({row['fitted_modes']}) | {row['frames']} "
+                     f"| {row['take_seconds']:.2f} | {row['fit_seconds']:.1f} "
+                     f"| {row['converged']} | {row['continue_seconds']:.3f} "
+                     f"| {row['take_residual']:.1e} | {row['fit_residual']:.1e} "
+                     f"| {row['continued_error']:.1e}, {row['uniform_error']:.1e} "
+                     f"| {row['setup_seconds']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+CASES["take"] = case_take
+
+
 def run_mesh_cache_shot(frames=1000, cuts=90):
     """A 1,000-frame simulate-and-bake of a ~50k-vertex bar to a Mesh Cache, in Blender with the
     extension installed from its zip (bench/mesh_cache_shot.py, its own process)."""
@@ -1185,6 +1263,9 @@ def main():
     results["rig"] = run_child("rig", "240")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + rig_table(results["rig"])
+    results["take"] = run_child("take", "20:100")
+    (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + take_table(results["take"])
     results["prepare_dense"] = run_child("prepare_dense", "4")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + prepare_dense_table(results["prepare_dense"])

@@ -8,6 +8,11 @@ The poses land where Keep Bake as Take puts a take (``bake.write_take``), so the
 editor reads them as it reads a kept bake. Reading the body itself, the extension's own bake
 (its keys, its Mesh Cache modifier) and preview are muted: they are output, not input.
 
+Take from Animation and Fit Material can take seconds: each reads the scene on the main thread
+(``gather_take``, ``gather_fit``), works on a worker thread with progress and Esc (``jobs``:
+``take_residuals``, ``fit_work``) and writes the result on the main thread (``store_take``,
+``keep_fitted``); in background mode the same runs synchronously.
+
 The fitted material lives in the .blend as an ID property on the object (``FITTED``, a plain
 dict of ``solver.take.FittedMaterial``), so it survives save, reopen and undo.
 """
@@ -17,8 +22,9 @@ import dataclasses
 import numpy as np
 import scipy.spatial
 
+from ..solver import spacetime
 from ..solver import take as solver_take
-from . import bake, mesh_cache, prepared, scene
+from . import bake, jobs, mesh_cache, prepared, scene
 from .scene import InputError
 
 FITTED = "rs_elastic_fitted_material"   # ID property on the object: the fitted material
@@ -114,18 +120,48 @@ def read_motion(context, obj, source, frames):
     return poses
 
 
-def take_from_animation(context, obj):
-    """Read the take source's motion over the scene's range into the body's take.
-    Returns (frames, residuals (F,) [m] of the modes' fit per frame)."""
+@dataclasses.dataclass
+class TakeInputs:
+    """What Take from Animation read on the main thread: the source's motion, checked."""
+    object_name: str
+    source_name: str
+    frames: list
+    poses: np.ndarray           # (F, n, 3) [object space]
+    body: object                # PreparedBody
+    rest: np.ndarray            # (n, 3) base vertices at rest
+
+
+def gather_take(context, obj):
+    """Main thread: validate the body and read its take source's motion over the scene's range.
+    Raises InputError."""
     scene.require_body(obj)
     bake.require_writable(obj, "store a take")
     body = prepared.require(obj)
     frames = scene_frames(context.scene)
-    poses = read_motion(context, obj, take_source(obj), frames)
-    _, residuals = solver_take.take_to_modal(body, scene.base_vertices(obj), poses)
-    bake.write_take(obj, frames, poses)
+    source = take_source(obj)
+    poses = read_motion(context, obj, source, frames)
+    return TakeInputs(obj.name, source.name, frames, poses, body, scene.base_vertices(obj))
+
+
+def _frame_progress(job, count, start, end, what):
+    """step(i) for ``solver.take.take_to_modal``: the job's fraction from start to end."""
+    def step(index):
+        job.step(start + (end - start) * (index + 1) / count,
+                 f"{what} frame {index + 1} of {count}")
+    return step
+
+
+def take_residuals(inputs, job):
+    """Worker thread: (F,) [m] how far the modes' fit misses each of the take's frames."""
+    step = _frame_progress(job, len(inputs.frames), 0.0, 0.95, "fitting the modes to")
+    _, residuals = solver_take.take_to_modal(inputs.body, inputs.rest, inputs.poses, step=step)
+    return residuals
+
+
+def store_take(obj, inputs):
+    """Main thread: the read motion becomes the body's take, which the editor then uses."""
+    bake.write_take(obj, inputs.frames, inputs.poses)
     obj.rs_elastic.use_take = True
-    return frames, residuals
 
 
 # --- the fitted material ----------------------------------------------------------------------
@@ -149,9 +185,23 @@ def _fit_range(obj, take_frames):
     return chosen
 
 
-def fit_material(obj, blender_scene):
-    """Fit the modal material to the take's frames in the fit range and keep it on the object.
-    Returns the ``FittedMaterial``."""
+@dataclasses.dataclass
+class FitInputs:
+    """What Fit Material read on the main thread: the take's frames in the fit range."""
+    object_name: str
+    body: object                # PreparedBody
+    rest: np.ndarray            # (n, 3) base vertices at rest
+    frames: list                # consecutive scene frames
+    poses: np.ndarray           # (k, n, 3) the take's poses on them [object space]
+    h: float                    # [s] per frame
+    damping_mass: float
+    damping_stiffness: float
+    material_freedom: float
+
+
+def gather_fit(obj, blender_scene):
+    """Main thread: validate the body and read the take's frames in the fit range. Raises
+    InputError."""
     scene.require_body(obj)
     body = prepared.require(obj)
     take_frames, take_poses = bake.take_poses(obj)
@@ -160,15 +210,39 @@ def fit_material(obj, blender_scene):
                          "as Take")
     frames = _fit_range(obj, take_frames)
     poses = take_poses[[take_frames.index(f) for f in frames]]
-    rest = scene.base_vertices(obj)
-    inputs, _ = solver_take.take_to_modal(body, rest, poses)
     settings = obj.rs_elastic
-    fitted = solver_take.fit_material(
-        body, rest, frames, poses, inputs, scene.frame_interval(blender_scene),
-        settings.damping_mass, settings.damping_stiffness,
-        material_freedom=settings.material_freedom)
+    return FitInputs(obj.name, body, scene.base_vertices(obj), frames, poses,
+                     scene.frame_interval(blender_scene), settings.damping_mass,
+                     settings.damping_stiffness, settings.material_freedom)
+
+
+# Share of a fit's progress bar taken by the take's modal coordinates (the rest: the solve).
+FIT_READING = 0.3
+FIT_ROUNDS = 20         # material rounds of a fit (``solver.take.fit_material``'s default)
+
+
+def fit_work(inputs, job):
+    """Worker thread: the ``FittedMaterial`` of the take's frames; ``jobs.Cancelled`` on Esc."""
+    step = _frame_progress(job, len(inputs.frames), 0.0, FIT_READING, "reading the take's")
+
+    def progress(iteration, objective):
+        job.step(min(0.95, FIT_READING + (1.0 - FIT_READING) * iteration / FIT_ROUNDS),
+                 f"round {iteration}, objective {objective:.4g}")
+
+    modal, _ = solver_take.take_to_modal(inputs.body, inputs.rest, inputs.poses, step=step)
+    try:
+        return solver_take.fit_material(
+            inputs.body, inputs.rest, inputs.frames, inputs.poses, modal, inputs.h,
+            inputs.damping_mass, inputs.damping_stiffness,
+            material_freedom=inputs.material_freedom, iterations=FIT_ROUNDS, callback=progress,
+            should_cancel=job.is_cancelled)
+    except spacetime.SolveCancelled:
+        raise jobs.Cancelled() from None
+
+
+def keep_fitted(obj, fitted):
+    """Main thread: keep the ``FittedMaterial`` on the object (in the .blend, undone with it)."""
     obj[FITTED] = fitted.to_dict()
-    return fitted
 
 
 def require_fitted(obj, body):

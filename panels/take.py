@@ -3,7 +3,7 @@ the motion continued with it."""
 import bpy
 
 from ..bridge import take
-from .body import RSElasticPanel
+from .body import RSElasticPanel, draw_progress
 
 
 class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
@@ -17,10 +17,12 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
         layout = self.layout
         layout.prop(settings, "take_source")
         layout.operator("rs_elastic.take_from_animation", icon='IMPORT')
+        draw_progress(layout, obj, "rs_elastic.take_from_animation")
         row = layout.row(align=True)
         row.prop(settings, "fit_frame_start")
         row.prop(settings, "fit_frame_end")
         layout.operator("rs_elastic.fit_material", icon='MOD_PHYSICS')
+        draw_progress(layout, obj, "rs_elastic.fit_material")
         fitted = take.fitted_material(obj)
         if fitted is None:
             layout.label(text="No fitted material yet")

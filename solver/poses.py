@@ -10,20 +10,31 @@ import numpy as np
 from . import rs, spacetime
 
 
-def poses_to_modal(body, poses):
+# Poses per least-squares solve in ``poses_to_modal``: one solve of a chunk costs about what one
+# pose's does (the matrix is the same), and the chunk's RS coordinates (K, E, 9) are in memory.
+POSES_PER_SOLVE = 32
+
+
+def poses_to_modal(body, poses, step=None):
     """Modal coordinates ẑ (k, m) of render-vertex poses (k, n, 3).
 
     Each pose's rotation branch is chained to the previous pose's, so a sequence that turns
-    on (a twist past 180°, a spin) stays continuous from pose to pose.
+    on (a twist past 180°, a spin) stays continuous from pose to pose. step(i), if given, is
+    called after pose i (progress; it may raise to stop).
     """
     X, T = body.nodes, body.tets
-    reference, fitted = None, []
-    for points in poses:
+    reference, fitted, chunk = None, [], []
+    for index, points in enumerate(poses):
         nodes = body.pose_transfer.nodes_from_points(points)
         y, _ = rs.pose_to_rs(X, T, nodes, reference=reference, neighbours=body.neighbours)
-        fitted.append(spacetime.pose_to_modal(body.modal_rs, body.volumes, y))
+        chunk.append(y)
         reference = y[:, :3]
-    return np.array(fitted).reshape(len(fitted), -1)
+        if len(chunk) == POSES_PER_SOLVE or index == len(poses) - 1:
+            fitted.append(spacetime.pose_to_modal(body.modal_rs, body.volumes, np.array(chunk)))
+            chunk = []
+        if step is not None:
+            step(index)
+    return np.concatenate(fitted) if fitted else np.zeros((0, body.modal_rs.shape[2]))
 
 
 def keeps_pins(body, rest, *poses):

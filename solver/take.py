@@ -26,15 +26,16 @@ FIT_TIGHTNESS = 1.0
 FIT_MATERIAL_WEIGHT = 0.0
 
 
-def take_to_modal(body, rest, take_poses):
+def take_to_modal(body, rest, take_poses, step=None):
     """The take's frames as deformer inputs, and how much of them the modes cannot express.
 
-    body: ``PreparedBody``; rest (n, 3) [m] base vertices at rest; take_poses (k, n, 3) [m].
+    body: ``PreparedBody``; rest (n, 3) [m] base vertices at rest; take_poses (k, n, 3) [m];
+    step(i) is called after frame i is read (progress; it may raise to stop).
     Returns (inputs (k, m) modal coordinates, branch-continuous from frame to frame;
     residuals (k,) [m] per frame the RMS over vertices of |reconstruction - pose|).
     """
     take_poses = np.asarray(take_poses, dtype=np.float64)
-    inputs = poses.poses_to_modal(body, take_poses)
+    inputs = poses.poses_to_modal(body, take_poses, step)
     return inputs, position_rms(body.surface_positions(rest, inputs), take_poses)
 
 

@@ -13,6 +13,11 @@
 3. A rigged creature (rig.blend, rig.png): the same keyed creature (tools/creature.py: it hops
    and flicks an ear) twice, on the left with its rig alone, on the right with its belly and
    ears simulated on the rig as free flesh.
+4. The material recovered from an animation (fit.blend, fit.png): a bar whose stiffness falls
+   threefold from root to tip (painted) is carried up and let ring, simulated, as the reference;
+   a second, uniform bar takes that motion (Take from Animation), fits its material to frames
+   10-60 (Fit Material) and plays on from there (Continue); the sheet shows frames after the
+   fit, the reference above the continuation.
 """
 import argparse
 import os
@@ -24,6 +29,8 @@ import blender_session  # noqa: E402
 import creature  # noqa: E402
 
 SHEET_FRAMES = (1, 14, 22, 30, 44, 72)
+FIT_RANGE, FIT_END = (10, 60), 108      # the fitted frames, the continuation's last frame
+FIT_SHEET_FRAMES = (64, 72, 80, 88, 96, 104)
 RIG_FRAMES = (1, 7, 10, 13, 16, 20)
 TILE = (640, 360)
 ROW_GAP = 3.4   # metres between the rows of the modes picture
@@ -304,6 +311,76 @@ def rig_picture(bpy, np, output):
     contact_sheet(bpy, np, frame_label, output / "rig.png", RIG_FRAMES)
 
 
+def fit_picture(bpy, np, output):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(output / "fit.blend"))
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, FIT_END
+    scene.render.fps, scene.use_gravity = 24, False     # free ringing, no sag to fit
+    reference = make_box(bpy, np, "Reference", (4.0, 0.5, 0.5), 5, location=(-2.0, 0.0, 0.9))
+    reference.color = (0.3, 0.55, 0.85, 1.0)
+    stiff = reference.vertex_groups.new(name="Stiff")
+    co = np.empty(len(reference.data.vertices) * 3)
+    reference.data.vertices.foreach_get("co", co)
+    for index, x in enumerate(co.reshape(-1, 3)[:, 0]):
+        stiff.add([index], float(1.0 - x / 4.0), 'REPLACE')
+    settings = reference.rs_elastic
+    settings.youngs_modulus, settings.density, settings.damping_mass = 1.2e7, 1000.0, 0.05
+    settings.stiffness_group, settings.stiffness_ratio = "Stiff", 1.0 / 3.0
+    prepare(bpy, reference, None, 0.1, num_modes=12)
+    for frame, z in ((1, 0.9), (6, 1.4)):                 # carried up, then held
+        reference.location.z = z
+        reference.keyframe_insert("location", frame=frame)
+    bpy.context.view_layer.objects.active = reference
+    if bpy.ops.rs_elastic.simulate() != {'FINISHED'}:
+        sys.exit("demo: simulating the reference failed")
+
+    fitted = make_box(bpy, np, "Fitted", (4.0, 0.5, 0.5), 5, location=(-2.0, 0.0, -1.3))
+    fitted.color = (0.85, 0.35, 0.2, 1.0)
+    settings = fitted.rs_elastic
+    settings.youngs_modulus, settings.density, settings.damping_mass = 8e6, 1000.0, 0.05
+    prepare(bpy, fitted, None, 0.1, num_modes=12)
+    settings.take_source = reference
+    settings.fit_frame_start, settings.fit_frame_end = FIT_RANGE
+    scene.frame_end = FIT_RANGE[1]                        # the take: frames 1-60
+    for operator in ("take_from_animation", "fit_material"):
+        if getattr(bpy.ops.rs_elastic, operator)() != {'FINISHED'}:
+            sys.exit(f"demo: {operator} failed")
+    scene.frame_end = FIT_END
+    if bpy.ops.rs_elastic.continue_motion(frame_end=FIT_END) != {'FINISHED'}:
+        sys.exit("demo: continuing the fitted bar failed")
+    report_fit(bpy, np, reference, fitted)
+
+    add_label(bpy, "reference: stiffness falls 3x to the tip", (0.0, 0.0, 0.3), 0.3)
+    add_label(bpy, f"uniform bar, material fitted to frames {FIT_RANGE[0]}-{FIT_RANGE[1]}, "
+                   "continued", (0.0, 0.0, -2.2), 0.3)
+    frame_label = add_label(bpy, "frame", (-4.0, 0.0, 3.0), 0.35, name="Frame Label")
+    stage(bpy, (0.0, -11.0, 0.4), 35, TILE)
+    scene.frame_set(1)
+    bpy.ops.wm.save_mainfile()
+    contact_sheet(bpy, np, frame_label, output / "fit.png", FIT_SHEET_FRAMES)
+
+
+def report_fit(bpy, np, reference, fitted):
+    """Print the fitted frequencies and the continuation's RMS distance to the reference."""
+    scene, misses = bpy.context.scene, []
+    for frame in range(FIT_RANGE[1] + 1, FIT_END + 1):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        shapes = []
+        for obj in (reference, fitted):
+            mesh = obj.evaluated_get(depsgraph).data
+            co = np.empty(len(mesh.vertices) * 3)
+            mesh.vertices.foreach_get("co", co)
+            shapes.append(co.reshape(-1, 3))
+        misses.append(np.sum((shapes[0] - shapes[1]) ** 2, axis=1))
+    figures = fitted.get("rs_elastic_fitted_material")
+    hz = np.sqrt(np.asarray(figures["eigenvalues"])[:2]) / (2.0 * np.pi)
+    print(f"demo: Fitted: first frequencies {np.round(hz, 3)} Hz (fit residual "
+          f"{figures['residual']:.3g} m); continued frames {FIT_RANGE[1] + 1}-{FIT_END} miss the "
+          f"reference by {np.sqrt(np.mean(misses)):.3g} m RMS")
+
+
 def main():
     args = parse_args()
     if not args.zip:
@@ -315,9 +392,10 @@ def main():
     import numpy as np
     modes_picture(bpy, np, output)
     rig_picture(bpy, np, output)
+    fit_picture(bpy, np, output)
     showcase(bpy, np, output)
     print(f"demo: wrote {output / 'demo.blend'}, {output / 'demo.png'}, {output / 'modes.png'}, "
-          f"{output / 'rig.png'}")
+          f"{output / 'rig.png'}, {output / 'fit.png'}")
 
 
 if __name__ == "__main__":

@@ -10,12 +10,11 @@ the source's positions; the fitted material after save and reopen; one-line refu
 nothing.
 """
 import numpy as np
-import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import bpy
 
-from blender_helpers import diagonal, evaluated_vertices, make_bar, vertices
+from blender_helpers import diagonal, make_bar, vertices
 from test_faults import refusal
 from test_panels import draw_all
 
@@ -254,65 +253,3 @@ def test_the_command_line_takes_fits_continues_and_saves(ext, tmp_path):
 
     bad = run_cli(blend, ["fit", "--object", "Body", "--source", "Nobody"])
     assert bad.returncode == 2, bad.stderr
-
-
-def hooked(source):
-    """The source's tip vertices follow an Empty that moves 0.2 m up over frames 1-5."""
-    empty = bpy.data.objects.new("Hand", None)
-    bpy.context.scene.collection.objects.link(empty)
-    tip = np.flatnonzero(vertices(source)[:, 0] > 4.0 - 1e-6)
-    modifier = source.modifiers.new("Hook", 'HOOK')
-    modifier.object = empty
-    modifier.vertex_indices_set([int(i) for i in tip])
-    for frame, z in ((1, 0.0), (5, 0.2)):
-        empty.location = (0.0, 0.0, z)
-        empty.keyframe_insert("location", frame=frame)
-
-
-def latticed(source):
-    """A lattice around the source, its far top points raised, its modifier's strength keyed
-    from 0 on frame 1 to 1 on frame 5."""
-    lattice = bpy.data.objects.new("Cage", bpy.data.lattices.new("Cage"))
-    bpy.context.scene.collection.objects.link(lattice)
-    lattice.location, lattice.scale = (2.0, 0.5, 0.5), (4.2, 1.2, 1.2)
-    for point in lattice.data.points:
-        if point.co[0] > 0.0 and point.co[2] > 0.0:
-            point.co_deform = (point.co[0], point.co[1], point.co[2] + 0.25)
-    modifier = source.modifiers.new("Lattice", 'LATTICE')
-    modifier.object = lattice
-    for frame, strength in ((1, 0.0), (5, 1.0)):
-        modifier.strength = strength
-        source.keyframe_insert('modifiers["Lattice"].strength', frame=frame)
-
-
-@pytest.mark.parametrize("animate", [hooked, latticed], ids=["hook", "lattice"])
-def test_a_take_reads_what_the_source_shows_on_every_frame(ext, animate):
-    """A Hook or Lattice on the source: the take is the source's evaluated mesh on every frame
-    (read back here frame by frame), and the modes' per-frame fit residual is what the take's
-    reconstruction misses by."""
-    obj = make_bar(name="Body", cuts=1)
-    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.3, 6
-    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    source = bpy.data.objects.new("Source", obj.data.copy())
-    bpy.context.scene.collection.objects.link(source)
-    animate(source)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 1, 5
-    obj.rs_elastic.take_source = source
-    bpy.context.view_layer.objects.active = obj
-    assert bpy.ops.rs_elastic.take_from_animation() == {'FINISHED'}
-    shown = []
-    for frame in range(1, 6):
-        scene.frame_set(frame)
-        shown.append(evaluated_vertices(source))
-    shown = np.array(shown)
-    frames, take = ext.bridge.bake.take_poses(obj)
-    assert frames == list(range(1, 6))
-    np.testing.assert_allclose(take, shown, atol=1e-6)
-    assert np.abs(shown[-1] - shown[0]).max() > 0.1            # it did move
-    body = ext.bridge.prepared.require(obj)
-    inputs, residuals = ext.solver.take.take_to_modal(body, vertices(obj), take)
-    reconstructed = body.surface_positions(vertices(obj), inputs)
-    np.testing.assert_allclose(ext.solver.take.position_rms(reconstructed, shown), residuals,
-                               rtol=1e-6, atol=1e-9)
-    print(f"take through {animate.__name__} source: residual per frame {np.round(residuals, 4)} m")
