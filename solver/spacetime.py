@@ -44,13 +44,17 @@ Choices written down here:
   system's (same objective, same iterates up to round-off and the Marquardt damping, which acts
   on the handles' unknowns only). A step's cost no longer grows with the frames beyond
   O(F r) vector work, so the default step limit is ``ELIMINATED_STEPS`` instead of
-  ``GN_STEPS``. Why: the penalised handles make a narrow curved valley in which GN converges
-  linearly (measured on the bench bar, 20 modes, 5 handles keyed on 2 frames: 34 steps at 200
-  frames, 70 at 400, 45 at 800, the count set by the edit, not the length); with the banded
-  system each step cost O(F r^3) and 400 frames ran out of the 50 steps. An exact Newton
-  Hessian (the handles' curvature by differences of their Jacobians) was tried and did not
-  pay: its model holds only within ~0.1 of the step in that valley, 35 instead of 70 steps at
-  400 frames for 2r extra Jacobians per handle frame and step.
+  ``GN_STEPS``, and such a run stops when the undamped GN model promises a decrease of at most
+  ``tolerance`` J (g^T H^-1 g / 2, a stationarity measure) rather than when J's own decrease
+  is that small: where GN converges linearly the latter stopped the 400-frame bench edit with
+  6e-7 J still promised. Why: the penalised handles make a narrow curved valley in which GN
+  converges linearly (measured on the bench bar, 20 modes, 5 handles keyed on 2 frames, old
+  stopping rule: 34 steps at 200 frames, 70 at 400, 45 at 800, the count set by the edit, not
+  the length); with the banded system each step cost O(F r^3) and 400 frames ran out of the
+  50 steps. An exact Newton Hessian (the handles' curvature by differences of their
+  Jacobians) was tried and did not pay: its model holds only within ~0.1 of the step in that
+  valley, 35 instead of 70 steps at 400 frames for 2r extra Jacobians per handle frame and
+  step.
 - **Penalty continuation**: with stiff handles (gamma far above the dynamics) the first GN step
   from rest solves the *linearised* constraints exactly, which for a large edit is a huge
   linear-modal pose; RS then lands in a poor basin (measured: a 5-handle 90 deg bend stalled
@@ -729,8 +733,11 @@ def _eliminated_step(state, tolerance, elimination):
     def scale_diagonal(damped, lm):
         damped[np.diag_indices(len(damped))] *= 1.0 + lm
 
+    # The undamped model's decrease g^T H^-1 g / 2 (the Newton decrement of the GN model):
+    # where GN converges linearly J's own decrease per step understates what is left.
+    predicted = 0.5 * float(rhs @ scipy.linalg.cho_solve(factorise(H), rhs, check_finite=False))
     return _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise,
-                         scale_diagonal)
+                         scale_diagonal, predicted)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -798,10 +805,13 @@ def _gauss_newton_step(state, tolerance):
                          scale_diagonal)
 
 
-def _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise, scale_diagonal):
+def _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise, scale_diagonal,
+                  predicted=None):
     """The LM loop of a GN step: damp H's diagonal by (1 + lm), factorise, take the step
     ``trial(factor)`` (n,) and its chord corrections (``solve_with(factor)``), accept the best
-    if J does not increase, else raise lm. Returns True when converged or stuck."""
+    if J does not increase, else raise lm. Returns True when converged or stuck: J fell by at
+    most ``tolerance`` J (relative), or by ``predicted`` (the decrease the undamped GN model
+    promised, if given) at most that, or the step was that small relative to Z."""
     s = state.problem.first_free
     while state.lm <= LM_MAX:
         damped = H.copy()
@@ -818,7 +828,8 @@ def _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise, sc
                           <= tolerance * (np.linalg.norm(Z[s:]) + 1e-300))
             state.Z, state.value, state.lm = Z, value, state.lm / 10.0
             state.lm = 0.0 if state.lm < LM_FIRST else state.lm
-            return decrease <= tolerance * max(value, 1e-300) or small_step
+            promised = decrease if predicted is None else predicted
+            return promised <= tolerance * max(value, 1e-300) or small_step
         state.lm = max(10.0 * state.lm, LM_FIRST)
     return True
 
