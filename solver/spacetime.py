@@ -36,6 +36,25 @@ Choices written down here:
   damping scales the diagonal (1 + lm); lm starts at 0, so a quadratic problem is solved in
   one step. Each trial adds a second-order correction for the handles' curvature (see
   ``_gauss_newton_step``). Steps are accepted only if the true objective does not increase.
+- **Elimination**: handles usually sit on a few frames, and every other frame enters J only
+  through the quadratic E_f + E_k. So with the start held and at most ``ELIMINATE_LIMIT``
+  unknowns on the handles' free frames, each Z block factors that quadratic part's banded
+  Hessian A once and keeps A^-1 on the handles' frames (``_Elimination``); a GN step is then a
+  dense solve of that size plus one banded back-substitution, the same step as the banded
+  system's (same objective, same iterates up to round-off and the Marquardt damping, which acts
+  on the handles' unknowns only). A step's cost no longer grows with the frames beyond
+  O(F r) vector work, so the default step limit is ``ELIMINATED_STEPS`` instead of
+  ``GN_STEPS``, and such a run stops when the undamped GN model promises a decrease of at most
+  ``tolerance`` J (g^T H^-1 g / 2, a stationarity measure) rather than when J's own decrease
+  is that small: where GN converges linearly the latter stopped the 400-frame bench edit with
+  6e-7 J still promised. Why: the penalised handles make a narrow curved valley in which GN
+  converges linearly (measured on the bench bar, 20 modes, 5 handles keyed on 2 frames, old
+  stopping rule: 34 steps at 200 frames, 70 at 400, 45 at 800, the count set by the edit, not
+  the length); with the banded system each step cost O(F r^3) and 400 frames ran out of the
+  50 steps. An exact Newton Hessian (the handles' curvature by differences of their
+  Jacobians) was tried and did not pay: its model holds only within ~0.1 of the step in that
+  valley, 35 instead of 70 steps at 400 frames for 2r extra Jacobians per handle frame and
+  step.
 - **Penalty continuation**: with stiff handles (gamma far above the dynamics) the first GN step
   from rest solves the *linearised* constraints exactly, which for a large edit is a huge
   linear-modal pose; RS then lands in a poor basin (measured: a 5-handle 90 deg bend stalled
@@ -105,6 +124,9 @@ ROUND_TOLERANCE = 1e-3     # a material round lowering J by less than this (rela
 HANDLE_ROUNDS = 6          # method-of-multipliers rounds of ``solve(exact_handles=True)``
 HANDLE_TOLERANCE = 1e-9    # ... stop once every handle is this close (relative to the handles' extent)
 HANDLE_MET = 1e-4          # ... and report the handles met (converged) within this of their extent
+GN_STEPS = 50             # default GN steps per Z solve (banded system)
+ELIMINATED_STEPS = 200    # ... with the handles' frames eliminated (``_Elimination``)
+ELIMINATE_LIMIT = 240      # most unknowns on the handles' frames for ``_Elimination``
 REACH_FORCING = 30.0       # E_f rise that, with the handles not closing in, means "out of reach"
 
 
@@ -575,23 +597,41 @@ def normal_equations(problem, Z, eigenvalues, damping, S):
 
 def _linearise(problem, Z, eigenvalues, damping, S):
     """(ab, g, handle residuals (c, 3) or None, their Jacobians in z (c, 3, r) or None)."""
-    F, r, s = problem.frames, problem.num_modes, problem.first_free
+    s = problem.first_free
+    grad, blocks = _quadratic_terms(problem, Z, eigenvalues, damping, S)
+    res, Jz, handle_grad, handle_blocks = _handle_system(problem, Z, S)
+    if res is not None:
+        grad, blocks = grad + handle_grad, blocks + handle_blocks
+    ab = _assemble_band(problem, eigenvalues, damping, blocks[s:])
+    return ab, grad[s:].reshape(-1), res, Jz
+
+
+def _quadratic_terms(problem, Z, eigenvalues, damping, S):
+    """Gradient (F, r) of E_f + E_k at Z and the keyframes' Hessian blocks (F, r, r)."""
+    F, r = problem.frames, problem.num_modes
     grad = control_energy_gradient(Z, eigenvalues, damping, problem.h, problem.scheme,
-        problem.external_forces)
+                                   problem.external_forces)
     blocks = np.zeros((F, r, r))
-    res = Jz = None
-    if _has(problem.handles):
-        res, Jx = _handle_terms(problem, Z, S, True)
-        Jz = Jx @ S                                                          # (c, 3, r)
-        np.add.at(grad, problem.handles.frames, np.einsum("cdr,cd->cr", Jz, res))
-        np.add.at(blocks, problem.handles.frames, np.einsum("cdr,cds->crs", Jz, Jz))
     if _has(problem.keyframes):
         keys = problem.keyframes
         key_res = _keyframe_terms(problem, Z, S)                             # (k, m)
         np.add.at(grad, keys.frames, np.sqrt(keys.weights)[:, None] * (key_res @ S))
         np.add.at(blocks, keys.frames, keys.weights[:, None, None] * (S.T @ S))
-    ab = _assemble_band(problem, eigenvalues, damping, blocks[s:])
-    return ab, grad[s:].reshape(-1), res, Jz
+    return grad, blocks
+
+
+def _handle_system(problem, Z, S):
+    """Handles' residuals (c, 3), Jacobians in z (c, 3, r), gradient (F, r) and GN blocks
+    (F, r, r) at Z; all None without handles."""
+    if not _has(problem.handles):
+        return None, None, None, None
+    F, r = problem.frames, problem.num_modes
+    res, Jx = _handle_terms(problem, Z, S, True)
+    Jz = Jx @ S                                                              # (c, 3, r)
+    grad, blocks = np.zeros((F, r)), np.zeros((F, r, r))
+    np.add.at(grad, problem.handles.frames, np.einsum("cdr,cd->cr", Jz, res))
+    np.add.at(blocks, problem.handles.frames, np.einsum("cdr,cds->crs", Jz, Jz))
+    return res, Jz, grad, blocks
 
 
 def _assemble_band(problem, eigenvalues, damping, blocks):
@@ -609,6 +649,95 @@ def _assemble_band(problem, eigenvalues, damping, blocks):
     i = np.arange(nf)[:, None]
     ab[d, i * r + k] += blocks[i, k + d, k]
     return ab
+
+
+class _Elimination:
+    """The frames no handle touches, eliminated once per Z block (module doc, "Elimination").
+
+    Only E_f and E_k see those frames, and both are quadratic in Z with a Hessian A (banded,
+    fixed while the material and S are). With the u r unknowns on the handles' free frames
+    picked by E (n, u r), X = A^-1 E (n, u r) and K = (E^T A^-1 E)^-1 (u r, u r), the Schur
+    complement of A on those frames: for a GN step whose handle part lives on them, the
+    minimiser of the model is dZ = -A^-1 g_q + X K (v + (A^-1 g_q)_c), v its handle-frame part
+    solving (K + Jc^T Jc) v = -K (A^-1 g_q)_c - g_c. The same step as the banded system's; what
+    the frame count costs is one banded factor and u r right-hand sides per block.
+    Raises np.linalg.LinAlgError when A is not positive definite (e.g. no start held).
+    """
+
+    def __init__(self, problem, eigenvalues, damping, S):
+        s, r = problem.first_free, problem.num_modes
+        frames = problem.handles.frame_list
+        self.frames = frames[frames >= s]
+        Z = np.zeros((problem.frames, r))
+        blocks = _quadratic_terms(problem, Z, eigenvalues, damping, S)[1]
+        A = _assemble_band(problem, eigenvalues, damping, blocks[s:])
+        self.factor = (scipy.linalg.cholesky_banded(A, lower=True, check_finite=False), True)
+        self.columns = ((self.frames - s)[:, None] * r + np.arange(r)).reshape(-1)
+        picks = np.zeros((A.shape[1], len(self.columns)))
+        picks[self.columns, np.arange(len(self.columns))] = 1.0
+        self.X = scipy.linalg.cho_solve_banded(self.factor, picks, check_finite=False)
+        inverse = 0.5 * (self.X[self.columns] + self.X[self.columns].T)   # (A^-1)_cc
+        self.K = scipy.linalg.cho_solve(scipy.linalg.cho_factor(inverse), np.eye(len(inverse)))
+        self.K = 0.5 * (self.K + self.K.T)
+
+    def expand(self, v):
+        """(n,) step on every free frame of a handle-frame part v (u r,) of a model with no
+        quadratic gradient: X K v."""
+        return self.X @ (self.K @ v)
+
+
+def _elimination(state):
+    """An ``_Elimination`` for the state's Z block, or None where the banded solve is used:
+    no handles, no start held (A singular), or more than ``ELIMINATE_LIMIT`` handle unknowns."""
+    problem = state.problem
+    if not _elimination_applies(problem):
+        return None
+    try:
+        return _Elimination(problem, state.eigenvalues, state.damping, state.S)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _elimination_applies(problem):
+    """Handles on at most ``ELIMINATE_LIMIT`` / r free frames, and the start held."""
+    if not _has(problem.handles) or not problem.fix_start:
+        return False
+    frames = problem.handles.frame_list
+    return np.count_nonzero(frames >= problem.first_free) * problem.num_modes <= ELIMINATE_LIMIT
+
+
+def _eliminated_step(state, tolerance, elimination):
+    """``_gauss_newton_step`` with the other frames eliminated (``_Elimination``)."""
+    problem, s = state.problem, state.problem.first_free
+    grad, _ = _quadratic_terms(problem, state.Z, state.eigenvalues, state.damping, state.S)
+    res, Jz, handle_grad, handle_blocks = _handle_system(problem, state.Z, state.S)
+    frames = elimination.frames
+    free = scipy.linalg.cho_solve_banded(elimination.factor, grad[s:].reshape(-1),
+                                         check_finite=False)                 # A^-1 g_q
+    H = elimination.K + scipy.linalg.block_diag(*handle_blocks[frames])
+    rhs = -elimination.K @ free[elimination.columns] - handle_grad[frames].reshape(-1)
+
+    def solve_with(factor):
+        def solve(rhs_frames):                    # (F, r) handle-frame rhs -> (n,) step
+            return elimination.expand(scipy.linalg.cho_solve(
+                factor, rhs_frames[frames].reshape(-1), check_finite=False))
+        return solve
+
+    def trial(factor):
+        v = scipy.linalg.cho_solve(factor, rhs, check_finite=False)
+        return -free + elimination.expand(v + free[elimination.columns])
+
+    def factorise(damped):
+        return scipy.linalg.cho_factor(damped, lower=True, check_finite=False)
+
+    def scale_diagonal(damped, lm):
+        damped[np.diag_indices(len(damped))] *= 1.0 + lm
+
+    # The undamped model's decrease g^T H^-1 g / 2 (the Newton decrement of the GN model):
+    # where GN converges linearly J's own decrease per step understates what is left.
+    predicted = 0.5 * float(rhs @ scipy.linalg.cho_solve(factorise(H), rhs, check_finite=False))
+    return _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise,
+                         scale_diagonal, predicted)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -653,30 +782,59 @@ def _gauss_newton_step(state, tolerance):
     straight GN steps leave it quadratically and get rejected or shortened, the corrections
     follow it. The best of the trial points is kept if it does not increase J.
     """
-    problem, s = state.problem, state.problem.first_free
+    problem = state.problem
     ab, g, res, Jz = _linearise(problem, state.Z, state.eigenvalues, state.damping, state.S)
+    s = problem.first_free
+
+    def solve_with(factor):
+        def solve(rhs_frames):
+            return scipy.linalg.cho_solve_banded(factor, rhs_frames[s:].reshape(-1),
+                                                 check_finite=False)
+        return solve
+
+    def scale_diagonal(damped, lm):
+        damped[0] *= 1.0 + lm
+
+    def factorise(damped):
+        return scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False), True
+
+    def trial(factor):
+        return scipy.linalg.cho_solve_banded(factor, -g, check_finite=False)
+
+    return _damped_steps(state, tolerance, ab, trial, solve_with, res, Jz, factorise,
+                         scale_diagonal)
+
+
+def _damped_steps(state, tolerance, H, trial, solve_with, res, Jz, factorise, scale_diagonal,
+                  predicted=None):
+    """The LM loop of a GN step: damp H's diagonal by (1 + lm), factorise, take the step
+    ``trial(factor)`` (n,) and its chord corrections (``solve_with(factor)``), accept the best
+    if J does not increase, else raise lm. Returns True when converged or stuck: J fell by at
+    most ``tolerance`` J (relative), or by ``predicted`` (the decrease the undamped GN model
+    promised, if given) at most that, or the step was that small relative to Z."""
+    s = state.problem.first_free
     while state.lm <= LM_MAX:
-        damped = ab.copy()
-        damped[0] *= 1.0 + state.lm
+        damped = H.copy()
+        scale_diagonal(damped, state.lm)
         try:
-            factor = (scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False), True)
+            factor = factorise(damped)
         except np.linalg.LinAlgError:       # round-off made the GN matrix indefinite: damp more
             state.lm = max(10.0 * state.lm, LM_FIRST)
             continue
-        step = scipy.linalg.cho_solve_banded(factor, -g, check_finite=False)
-        Z, value = _corrected_trials(state, factor, step, res, Jz)
+        Z, value = _corrected_trials(state, solve_with(factor), trial(factor), res, Jz)
         if value <= state.value:
             decrease = state.value - value
             small_step = (np.linalg.norm(Z - state.Z)
                           <= tolerance * (np.linalg.norm(Z[s:]) + 1e-300))
             state.Z, state.value, state.lm = Z, value, state.lm / 10.0
             state.lm = 0.0 if state.lm < LM_FIRST else state.lm
-            return decrease <= tolerance * max(value, 1e-300) or small_step
+            promised = decrease if predicted is None else predicted
+            return promised <= tolerance * max(value, 1e-300) or small_step
         state.lm = max(10.0 * state.lm, LM_FIRST)
     return True
 
 
-def _corrected_trials(state, factor, step, res, Jz):
+def _corrected_trials(state, solve, step, res, Jz):
     """Best (Z, J) among Z + step and its chord corrections (see ``_gauss_newton_step``)."""
     problem, s, r = state.problem, state.problem.first_free, state.problem.num_modes
     Z = state.Z.copy()
@@ -691,8 +849,7 @@ def _corrected_trials(state, factor, step, res, Jz):
         rhs = np.zeros_like(Z)
         np.add.at(rhs, frames, np.einsum("cdr,cd->cr", Jz, error))
         Z = Z.copy()
-        Z[s:] -= scipy.linalg.cho_solve_banded(factor, rhs[s:].reshape(-1),
-                                               check_finite=False).reshape(-1, r)
+        Z[s:] -= solve(rhs).reshape(-1, r)
         value = state.evaluate(Z=Z)
         if value >= best[1]:
             break
@@ -701,15 +858,28 @@ def _corrected_trials(state, factor, step, res, Jz):
 
 
 def _optimise_z(state, iterations, tolerance, outer, callback, should_cancel):
-    """Up to ``iterations`` GN/LM steps on Z; records each. Returns True if converged."""
-    for _ in range(iterations):
+    """Up to ``iterations`` GN/LM steps on Z (None: ``_step_limit``); records each. Returns
+    True if converged."""
+    elimination = _elimination(state) if iterations is None or iterations > 0 else None
+    for _ in range(_step_limit(state, iterations, elimination)):
         _check_cancel(should_cancel)
-        done = _gauss_newton_step(state, tolerance)
+        done = (_gauss_newton_step(state, tolerance) if elimination is None
+                else _eliminated_step(state, tolerance, elimination))
         state.iterations += 1
         state.record(outer if outer is not None else state.iterations, "z", callback)
         if done:
             return True
     return False
+
+
+def _step_limit(state, iterations, elimination=False):
+    """``iterations``, or by default ``GN_STEPS`` (``ELIMINATED_STEPS`` where the handles'
+    frames are eliminated, ``_elimination``: such steps cost no more with the frame count)."""
+    if iterations is not None:
+        return int(iterations)
+    if elimination is False:
+        elimination = _elimination_applies(state.problem)
+    return GN_STEPS if not elimination else ELIMINATED_STEPS
 
 
 def material_bounds(eigenvalues, damping, freedom):
@@ -899,13 +1069,14 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
           exact_handles=False):
     """Minimise J over Z (and, with ``optimise_material``, over Lambda, D and S).
 
-    iterations: GN steps (default 50) without material optimisation; outer block-descent
-    rounds (default 20) with it, each round = up to ``gn_iterations`` GN steps, the (lambda, d)
-    fit and, for a rectangular S only (module doc), up to ``sampling_iterations`` L-BFGS-B
-    iterations on S with Z carried; after the last round Z is
-    solved again (up to 50 GN steps) for the final material, so no control force is left that
-    the material change made unnecessary. tolerance: relative decrease of J (and relative step
-    size) under which a GN run stops; round_tolerance: relative decrease of J over a round
+    iterations: GN steps per Z solve (default ``GN_STEPS``, ``ELIMINATED_STEPS`` where the
+    handles' frames are eliminated, module doc) without material optimisation; outer
+    block-descent rounds (default 20) with it, each round = up to ``gn_iterations`` GN steps,
+    the (lambda, d) fit and, for a rectangular S only (module doc), up to
+    ``sampling_iterations`` L-BFGS-B iterations on S with Z carried; after the last round Z is
+    solved again (default step limit) for the final material, so no control force is left
+    that the material change made unnecessary. tolerance: relative decrease of J (and relative
+    step size) under which a GN run stops; round_tolerance: relative decrease of J over a round
     under which the material descent has converged. initial: (F, r) starting Z (default zeros;
     start frames are overwritten by start_state). continuation: run the penalty continuation
     for stiff handles first (module doc). callback(iteration, J) after every recorded step;
@@ -923,7 +1094,7 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         raise ValueError("material optimisation with external forces (a rig's loads) is not "
                          "supported: the forces are in the prepared modes' coordinates")
     state = _State(problem, Z, 0.0 if problem.mu is None else float(problem.mu))
-    gn_cap = 50 if iterations is None or optimise_material else int(iterations)
+    gn_cap = None if iterations is None or optimise_material else int(iterations)
     reach = _warm_start(state, gn_cap, tolerance, callback, should_cancel) if continuation \
         else None
     if not optimise_material:
@@ -941,7 +1112,7 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
                            else f"the handles stay up to {worst:.1e} of their extent from "
                                 f"their targets: they may ask for the impossible")
         return _result(state, done, "converged" if done else
-                       f"Gauss-Newton did not converge in {gn_cap} steps")
+                       f"Gauss-Newton did not converge in {_step_limit(state, gn_cap)} steps")
 
     out_of_reach = []
     if reach is not None and reach.stalled:     # go on with the handles at the stage that held
@@ -963,13 +1134,13 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         if rounds_done:
             break
     _check_cancel(should_cancel)
-    z_done = _optimise_z(state, 50, tolerance, rounds + 1, callback, should_cancel)
+    z_done = _optimise_z(state, None, tolerance, rounds + 1, callback, should_cancel)
     reasons = out_of_reach + ([] if rounds_done else
                [f"the material still lowered the objective by {change:.1e} (relative) in "
                 f"round {rounds} of {rounds}: allow more iterations"])
     if not z_done:
-        reasons.append("the motion for the final material did not converge in 50 "
-                       "Gauss-Newton steps")
+        reasons.append("the motion for the final material did not converge in "
+                       f"{_step_limit(state, None)} Gauss-Newton steps")
     return _result(state, rounds_done and z_done and not out_of_reach, "; ".join(reasons) or
                    f"converged in {outer} material rounds")
 

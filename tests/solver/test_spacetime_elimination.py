@@ -1,0 +1,139 @@
+"""The space-time GN step with the frames no handle touches eliminated (issue 30, item 3).
+
+Oracles: a dense solve of the banded normal equations (``normal_equations``) for the step, the
+gradient of J by central differences and the Newton decrement g^T H^-1 g / 2 (the decrease a
+GN step still predicts, H the GN matrix) for the stationarity of the result, and an independent
+minimiser (scipy's L-BFGS-B on the full objective with the analytic gradient) for its value.
+"""
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.optimize
+
+from solver import spacetime as st
+
+
+class QuadraticDeformer:
+    """Analytic nonlinear deformer q(z) = A z + 1/2 C(z, z), C symmetric in its last two."""
+
+    def __init__(self, m, rb, rng, curvature=0.3):
+        self.num_coords, self.basis_size = m, rb
+        self.A = rng.normal(size=(rb, m))
+        C = curvature * rng.normal(size=(rb, m, m))
+        self.C = 0.5 * (C + C.transpose(0, 2, 1))
+
+    def q_jacobian(self, z):
+        return self.q_jacobian_batch(np.asarray(z)[None])[0]
+
+    def q_batch(self, Z):
+        return Z @ self.A.T + 0.5 * np.einsum("bij,fi,fj->fb", self.C, Z, Z)
+
+    def q_jacobian_batch(self, Z):
+        return self.A[None] + np.einsum("bij,fj->fbi", self.C, Z)
+
+
+def edit(frames, r=3, seed=0, keyframes=True, gamma=50.0):
+    """A free-tailed edit: 2 handles on frames 0.3 F and 0.6 F, a keyframe, external forces."""
+    rng = np.random.default_rng(seed)
+    deformer = QuadraticDeformer(r + 1, 6, rng)
+    keyed = [round(0.3 * frames), round(0.6 * frames)]
+    handles = st.HandleConstraints(frames=np.repeat(keyed, 2), rows=rng.normal(size=(4, 3, 6)),
+                                   rest=rng.normal(size=(4, 3)), weights=[1.0, 0.5, 2.0, 1.0],
+                                   targets=rng.normal(size=(4, 3)))
+    keys = (st.Keyframes(frames=[round(0.45 * frames)], poses=0.3 * rng.normal(size=(1, r + 1)),
+                         weights=[2.0]) if keyframes else None)
+    eigenvalues = np.linspace(2.0, 30.0, r)
+    return st.SpaceTimeProblem(frames, 1.0 / 24.0, eigenvalues,
+                               st.rayleigh_damping(eigenvalues, 0.1, 0.01), deformer,
+                               handles=handles, keyframes=keys, gamma=gamma, mu=0.0,
+                               external_forces=0.1 * rng.normal(size=(frames, r)))
+
+
+def dense_from_band(ab):
+    n = ab.shape[1]
+    A = np.zeros((n, n))
+    for d in range(ab.shape[0]):
+        A[np.arange(d, n), np.arange(n - d)] = ab[d, :n - d]
+    return A + np.tril(A, -1).T
+
+
+@pytest.mark.parametrize("keyframes", [False, True])
+def test_eliminated_step_is_the_dense_gauss_newton_step(monkeypatch, keyframes):
+    """Without chord corrections and damping, one eliminated step is -H^-1 g of the full system."""
+    monkeypatch.setattr(st, "CORRECTIONS", 0)
+    problem = edit(60, keyframes=keyframes)
+    Z0 = 0.2 * np.random.default_rng(3).normal(size=(60, problem.num_modes))
+    Z0[:2] = 0.0
+    ab, g = st.normal_equations(problem, Z0, problem.eigenvalues, problem.damping,
+                                problem.sampling)
+    expected = Z0.copy()
+    expected[2:] += np.linalg.solve(dense_from_band(ab), -g).reshape(-1, problem.num_modes)
+    state = st._State(problem, Z0.copy(), 0.0)
+    elimination = st._elimination(state)
+    assert elimination is not None
+    st._eliminated_step(state, 0.0, elimination)
+    assert state.value < st._State(problem, Z0.copy(), 0.0).value     # the step was accepted
+    np.testing.assert_allclose(state.Z, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def predicted_decrease(problem, Z):
+    """Newton decrement g^T H^-1 g / 2 of J at Z, H the banded GN matrix."""
+    ab, g = st.normal_equations(problem, Z, problem.eigenvalues, problem.damping,
+                                problem.sampling)
+    return 0.5 * float(g @ scipy.linalg.solveh_banded(ab, g, lower=True))
+
+
+def fd_gradient(problem, Z, step=1e-6):
+    """Central-difference dJ/dZ on the free frames."""
+    base = Z[2:].reshape(-1)
+    grad = np.empty_like(base)
+    for i in range(len(base)):
+        values = []
+        for sign in (1.0, -1.0):
+            x = base.copy()
+            x[i] += sign * step
+            trial = Z.copy()
+            trial[2:] = x.reshape(-1, problem.num_modes)
+            values.append(st.objective(problem, trial, problem.eigenvalues, problem.damping,
+                                       problem.sampling))
+        grad[i] = (values[0] - values[1]) / (2.0 * step)
+    return grad
+
+
+def test_solve_is_stationary_and_matches_an_independent_minimiser():
+    problem = edit(40, seed=1)
+    result = st.solve(problem)
+    assert result.converged, result.reason
+    grad = st.z_gradient(problem, result.Z, problem.eigenvalues, problem.damping,
+                         problem.sampling)[2:].reshape(-1)
+    np.testing.assert_allclose(grad, fd_gradient(problem, result.Z), rtol=0,
+                               atol=1e-5 * np.abs(grad).max() + 1e-6)
+    assert predicted_decrease(problem, result.Z) <= 1e-8 * result.objective
+
+    def fun(x):
+        Z = result.Z.copy()
+        Z[2:] = x.reshape(-1, problem.num_modes)
+        value = st.objective(problem, Z, problem.eigenvalues, problem.damping, problem.sampling)
+        return value, st.z_gradient(problem, Z, problem.eigenvalues, problem.damping,
+                                    problem.sampling)[2:].reshape(-1)
+
+    reference = scipy.optimize.minimize(fun, np.zeros(result.Z[2:].size), jac=True,
+                                        method="L-BFGS-B",
+                                        options=dict(maxiter=20000, ftol=1e-15, gtol=1e-10))
+    assert result.objective <= reference.fun * (1.0 + 1e-9)
+    np.testing.assert_allclose(result.objective, reference.fun, rtol=1e-6)
+
+
+@pytest.mark.parametrize("frames", [400, 800])
+def test_long_edits_converge_to_a_stationary_point(frames):
+    """The frame count only sets the cost of one banded factor per block: a long free tail and
+    long stretches between the handles converge like a short edit (KKT: |dJ/dZ| small)."""
+    problem = edit(frames, seed=2)
+    result = st.solve(problem)
+    assert result.converged, result.reason
+    assert predicted_decrease(problem, result.Z) <= 1e-8 * result.objective
+    # the free tail after the last handle carries no control force
+    control = st.dynamics_residual(result.Z, problem.eigenvalues, problem.damping, problem.h,
+                                   problem.scheme, problem.external_forces)
+    assert np.abs(control[round(0.6 * frames):]).max() <= 1e-6 * np.abs(control).max()
