@@ -11,6 +11,7 @@ import contextlib
 import io
 import math
 import os
+import re
 import subprocess
 import tarfile
 import tempfile
@@ -32,8 +33,17 @@ def child_environment(solver_root, deps):
     return {**os.environ, "PYTHONPATH": os.pathsep.join([str(solver_root), str(deps)])}
 
 
+LABEL_FIELDS = ("modes", "frames", "material", "size", "integrator")   # name a list's rows
+
+
+def entry_label(entry, index):
+    """How a row of a list is named in a key: its identifying fields, else its index."""
+    fields = [f"{k}={entry[k]}" for k in LABEL_FIELDS if k in entry]
+    return ",".join(fields) if fields else str(index)
+
+
 def numeric_items(row, prefix=""):
-    """{dotted key: number} of a JSON row, lists of rows flattened as key[i]."""
+    """{dotted key: number} of a JSON row; a list of rows flattened as key[label].figure."""
     items = {}
     for key, value in row.items():
         name = f"{prefix}{key}"
@@ -45,20 +55,31 @@ def numeric_items(row, prefix=""):
             items.update(numeric_items(value, name + "."))
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
             for i, entry in enumerate(value):
-                items.update(numeric_items(entry, f"{name}[{i}]."))
+                items.update(numeric_items(entry, f"{name}[{entry_label(entry, i)}]."))
     return items
 
 
+def key_pattern(key):
+    """A compiled pattern of a dotted key in which '*' stands for any text (a list index)."""
+    return re.compile(".*".join(re.escape(part) for part in key.split("*")) + "$")
+
+
 def compared(pair, keys):
-    """[(key, baseline, current, current / baseline)] of the keys (dotted, a trailing '*'
-    matches any index or suffix) that both rows have."""
+    """[(key, baseline, current, current / baseline)] of the figures both rows have whose
+    dotted key matches one of ``keys`` ('*' matches any text, e.g. rows[*].seconds)."""
     base, current = numeric_items(pair["baseline"]), numeric_items(pair["current"])
+    patterns = [key_pattern(k) for k in keys]
     out = []
-    for key in sorted(set(base) & set(current)):
-        if any(key == k or (k.endswith("*") and key.startswith(k[:-1])) for k in keys):
+    for key in sorted(set(base) & set(current), key=natural_order):
+        if any(p.match(key) for p in patterns):
             ratio = current[key] / base[key] if base[key] else float("nan")
             out.append((key, base[key], current[key], ratio))
     return out
+
+
+def natural_order(key):
+    """Sort key that puts rows[10] after rows[9]."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", key)]
 
 
 def comparison_table(pairs, revision):

@@ -1150,7 +1150,8 @@ COMPARED = [
     ("reduced_rs", "10k", ["prepare_seconds", "cubature_seconds", "basis_seconds", "max_error"]),
     ("dynamics", "20", ["steps_per_second", "safe_steps_per_second", "stvk_steps_per_second",
                         "prepare_seconds"]),
-    ("spacetime", "20:200,400,800", ["rows[*"]),
+    ("spacetime", "20:200,400,800", ["rows[*].seconds", "rows[*].gn_iterations",
+                                     "rows[*].residual"]),
     ("take", "20:100", ["take_seconds", "fit_seconds", "continue_seconds", "continued_error"]),
 ]
 
