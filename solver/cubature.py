@@ -9,13 +9,16 @@ on. This module depends on ``rs`` only, and ``reduced`` builds on it.
 
 Choices written down here:
 
-- Every weight re-fit is on all poses, kept cheap by a QR reduction: with the
-  picked columns A_S = Q R (maintained incrementally, one Gram-Schmidt step per pick),
-  |A_S w - b|^2 = |R w - Q^T b|^2 + const, so ``scipy.optimize.nnls(R, Q^T b)`` (k x k) has the
-  same minimiser as the tall problem (n x k, n = poses x rB). Hence no pose subsets are needed,
-  and the residual never increases from one pick to the next (the old weights stay feasible).
-- Candidates: each pick scores a fresh random subset of the unpicked elements by the cosine
-  between their column and the residual (only positive correlations can help with w >= 0).
+- Every weight re-fit is on all poses, kept cheap by a k x k reduction: with the picked
+  columns A_S and R^T R = A_S^T A_S (grown by one Cholesky column per pick), Qb = R^-T A_S^T b,
+  |A_S w - b|^2 = |R w - Qb|^2 + |b|^2 - |Qb|^2, so ``scipy.optimize.nnls(R, Qb)`` (k x k) has
+  the same minimiser as the tall problem (n x k, n = poses x rB). Hence no pose subsets are
+  needed, and the residual never increases from one pick to the next (the old weights stay
+  feasible). The inner products a new column needs come from one BLAS-3 product per block of
+  candidates, so the n x k picked columns are read twice per block, not several times per pick.
+- Candidates: each block is a fresh random subset of the unpicked elements, scored by the
+  cosine between their column and the residual (only positive correlations can help with
+  w >= 0); the best few of them are kept for the block's picks.
 - Picks whose NNLS weight ends at 0 are dropped from the returned cubature.
 """
 
@@ -102,7 +105,8 @@ def pose_extremes(modal_rs, Z, chunk=16):
 # Greedy NNLS
 
 QR_DELETE_LIMIT = 16    # Givens deletion while the columns left out are under 1/16 of those kept
-REORTHOGONALISE = 0.5 ** 0.5    # second Gram-Schmidt pass when a column keeps less of its norm
+SCREEN = 4      # candidates kept per pick after a block's first scoring
+DEPENDENT = 1e-6   # a column whose part outside the picked ones is below this is dependent
 
 
 def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=None,
@@ -113,19 +117,21 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
       computes only the requested columns (then ``num_columns`` = K is required). A block it
       returns is read only until the next call, so the callable may refill one buffer.
     target: (n,). tol: stop when |residual| / |target| <= tol. max_picks: at most this many.
-    candidates: size of the random subset of unpicked columns scored per pick (None: all).
+    candidates: size of the random subset of unpicked columns drawn per block (None: all).
     rng: ``np.random.Generator`` (default seeded 0). progress: optional callable(fraction,
-      message) called before each pick; an exception raised in it aborts and propagates.
+      message) called before each block; an exception raised in it aborts and propagates.
     picks_per_block: picks taken from one computed block of candidate columns before a new
-      random block is drawn (re-scored against the updated residual after each pick). Columns
-      are the expensive part when they are computed on demand, so a large fit (hundreds of
-      picks) takes several per block; 1 draws a fresh block for every pick.
+      random block is drawn. Columns are the expensive part when they are computed on demand,
+      so a large fit (hundreds of picks) takes several per block; 1 draws a fresh block for
+      every pick.
 
-    Each pick takes the candidate with the largest cosine to the residual, then re-fits the
-    weights (module docstring): every ``refit_every`` picks by ``scipy.optimize.nnls`` on all
-    columns; in between by unconstrained least squares on the columns with positive weight
-    plus the new one, falling back to NNLS when that turns a weight negative. Either way the
-    weights stay >= 0 and the residual cannot grow (the previous weights remain feasible).
+    Each pick takes the candidate with the largest cosine to the residual (after the block's
+    first pick, among the ``SCREEN`` x picks_per_block best of its first scoring, re-scored
+    exactly in k-space: ``_picks_from_block``), then re-fits the weights (module docstring):
+    every ``refit_every`` picks by ``scipy.optimize.nnls`` on all columns; in between by an
+    active-set NNLS warm-started from the previous weights (``_warm_active_set``). Either way
+    the weights stay >= 0 and the residual cannot grow (the previous weights remain feasible).
+    The residual is recomputed on all n rows after each block.
 
     Returns (picked (k,) int64 indices with w > 0, weights (k,) > 0, history: list of relative
     residuals, the first for w = 0, then one per accepted pick; non-increasing).
@@ -168,82 +174,137 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
 
 def _picks_from_block(fit, block, pool, available, count, tol, refit_every, history):
     """Up to ``count`` greedy picks from one block (n, |pool|) of candidate columns, each the
-    unpicked column with the largest cosine to the current residual; appends the relative
-    residual after each accepted pick to ``history``. Returns whether anything was picked."""
+    unpicked column with the largest cosine to the current residual, followed by a re-fit;
+    appends the relative residual after each accepted pick to ``history``. Returns whether
+    anything was picked.
+
+    The first pick scores the whole block against the residual; the later ones only the
+    ``SCREEN`` x count best of that scoring, and in k-space: with their inner products with
+    the picked columns, the target and each other (one BLAS-3 product per block),
+    r^T c = b^T c - w^T (A^T c) is exact without touching the n rows again."""
+    count = max(int(count), 1)
     norms = np.maximum(np.sqrt(np.einsum("ij,ij->j", block, block)), 1e-300)
+    score = (fit.residual @ block) / norms
+    score[~available[pool]] = -np.inf
+    shortlist = np.arange(block.shape[1])
+    if len(shortlist) > SCREEN * count:
+        shortlist = np.sort(np.argpartition(-score, SCREEN * count)[:SCREEN * count])
+    columns = block[:, shortlist]
+    if not np.isfinite(score[shortlist]).any():
+        return False
+    cross, target_inner, gram = fit.inner_products(columns)
+    norms = norms[shortlist]
+    open_ = available[pool[shortlist]]
     picked = False
-    for _ in range(max(int(count), 1)):
-        score = (fit.residual @ block) / norms
-        score[~available[pool]] = -np.inf
+    for _ in range(count):
+        score = np.where(open_, (target_inner - fit.weights @ cross) / norms, -np.inf)
         best = int(np.argmax(score))
         if not score[best] > 0.0:
             break
-        picked = True
-        available[pool[best]] = False
-        if fit.add(pool[best], block[:, best]):
+        picked, open_[best] = True, False
+        available[pool[shortlist[best]]] = False
+        if fit.add(pool[shortlist[best]], columns[:, best], cross[:, best],
+                   target_inner[best], gram[best, best]):
+            cross = np.vstack([cross, gram[best]])
             history.append(fit.refit(full=fit.size % max(int(refit_every), 1) == 0))
         if history[-1] <= tol or fit.size >= fit.capacity:
             break
+    if picked and len(history) > 1:                  # the estimate, now on all n rows
+        history[-1] = fit.exact_residual()
     return picked
 
 
 class _IncrementalNNLS:
-    """NNLS over a growing column set, reduced to k x k through an incremental QR."""
+    """NNLS over a growing column set A (n, k), reduced to k x k through R^T R = A^T A.
+
+    R grows by one Cholesky column per pick from the new column's inner products with the
+    picked ones (``inner_products``, computed for a whole shortlist at once), and
+    Qb = R^-T A^T b, so |A w - b|^2 = |R w - Qb|^2 + |b|^2 - |Qb|^2: ``scipy.optimize.nnls``
+    on (R, Qb) (k x k) has the same minimiser as the tall problem. The n x k columns are read
+    once per block of picks (the inner products) and once for the exact residual."""
 
     def __init__(self, target, capacity):
         n = len(target)
         self.target, self.capacity = target, capacity
-        self.norm = max(float(np.linalg.norm(target)), 1e-300)
+        self.target_sq = float(target @ target)
+        self.norm = max(np.sqrt(self.target_sq), 1e-300)
         # Column-major: the first k columns are one contiguous block for the BLAS products.
         self.A = np.empty((n, capacity), order="F")
-        self.Q = np.empty((n, capacity), order="F")
         self.R = np.zeros((capacity, capacity))
         self.Qb = np.empty(capacity)
         self.size = 0
         self.indices = np.empty(0, dtype=np.int64)
         self.weights = np.empty(0)
         self.residual = target.copy()
+        self.new = 0
 
-    def add(self, index, column):
-        """Append a column; False (and nothing appended) if it is numerically dependent."""
+    def inner_products(self, columns):
+        """(A^T C (k, s), b^T C (s,), C^T C (s, s)) of candidate columns C (n, s)."""
+        return (self.A[:, :self.size].T @ columns, self.target @ columns, columns.T @ columns)
+
+    def add(self, index, column, cross, target_inner, length_sq):
+        """Append a column (n,) given A^T a (k,), b^T a and |a|^2; False (nothing appended)
+        if it is numerically dependent on the picked ones."""
         k = self.size
-        Q = self.Q[:, :k]
-        r = Q.T @ column
-        v = column - Q @ r
-        length, rho = np.linalg.norm(column), np.linalg.norm(v)
-        if rho < REORTHOGONALISE * length:      # cancellation: a second pass ("twice is enough")
-            correction = Q.T @ v
-            v -= Q @ correction
-            r += correction
-            rho = np.linalg.norm(v)
-        if rho <= 1e-10 * length:
+        coupling = scipy.linalg.solve_triangular(self.R[:k, :k], cross, trans="T") if k \
+            else np.empty(0)
+        rest = length_sq - float(coupling @ coupling)
+        if not rest > DEPENDENT ** 2 * length_sq:
             return False
-        self.A[:, k], self.Q[:, k] = column, v / rho
-        self.R[:k, k], self.R[k, k] = r, rho
-        self.Qb[k] = self.Q[:, k] @ self.target
+        self.A[:, k] = column
+        self.R[:k, k], self.R[k, k] = coupling, np.sqrt(rest)
+        self.Qb[k] = (target_inner - coupling @ self.Qb[:k]) / self.R[k, k]
         self.indices = np.append(self.indices, index)
-        self.size += 1
+        self.weights = np.append(self.weights, 0.0)
+        self.size, self.new = k + 1, 1
         return True
 
     def refit(self, full=True):
-        """Re-fit the weights (see ``greedy_nnls``); returns the relative residual."""
+        """Re-fit the weights (see ``greedy_nnls``); returns the relative residual from the
+        k x k reduction (``exact_residual`` recomputes it on the n rows)."""
         k = self.size
         R, Qb = self.R[:k, :k], self.Qb[:k]
-        weights = None
-        if not full:
-            weights = np.zeros(k)
-            passive = np.append(np.flatnonzero(self.weights > 0.0), k - 1)
-            if len(passive) == k:                # all columns: R is square upper triangular
-                weights = scipy.linalg.solve_triangular(R, Qb)
-            else:
-                weights[passive] = _passive_least_squares(R, Qb, passive)
-            if np.any(weights[passive] <= 0.0):
-                weights = None
-        if weights is None:
-            weights, _ = nnls(R, Qb, maxiter=max(50, 30 * k))
-        self.weights = weights
-        self.residual = self.target - self.A[:, :k] @ self.weights
-        return float(np.linalg.norm(self.residual)) / self.norm
+        if full:
+            self.weights, _ = nnls(R, Qb, maxiter=max(50, 30 * k))
+        else:
+            self.weights = _warm_active_set(R, Qb, self.weights, self.new)
+        misfit = R @ self.weights - Qb
+        outside = max(self.target_sq - float(Qb @ Qb), 0.0)
+        return float(np.sqrt(outside + misfit @ misfit)) / self.norm
+
+    def exact_residual(self):
+        """Recompute the residual b - A w on all n rows; returns its relative norm."""
+        self.residual = self.target - self.A[:, :self.size] @ self.weights
+        return float(np.sqrt(self.residual @ self.residual)) / self.norm
+
+
+def _warm_active_set(R, b, weights, new):
+    """min |R w - b| over w >= 0 on the columns positive in ``weights`` (feasible, (k,)) and
+    the last ``new`` ones (just added, weight 0): Lawson-Hanson's inner loop started there.
+    Solve on that passive set; while a weight is not positive, step from the feasible point
+    towards the solution until the first such weight reaches 0, leave it out, solve again.
+    The objective never grows (a convex quadratic moved towards its minimiser on a subspace
+    that holds the current point)."""
+    k = R.shape[1]
+    w = np.array(weights, dtype=np.float64)
+    passive = np.union1d(np.flatnonzero(w > 0.0), np.arange(k - int(new), k))
+    while len(passive):
+        trial = np.zeros(k)
+        if len(passive) == k:                    # all columns: R is square upper triangular
+            trial[:] = scipy.linalg.solve_triangular(R, b)
+        else:
+            trial[passive] = _passive_least_squares(R, b, passive)
+        bad = passive[trial[passive] <= 0.0]
+        if not len(bad):
+            return trial
+        gap = w[bad] - trial[bad]
+        ratio = np.where(gap > 0.0, w[bad] / np.where(gap > 0.0, gap, 1.0), 0.0)
+        first = int(np.argmin(ratio))
+        w = np.maximum(w + ratio[first] * (trial - w), 0.0)
+        w[bad[first]] = 0.0
+        w[np.setdiff1d(np.arange(k), passive)] = 0.0
+        passive = passive[w[passive] > 0.0]
+    return w
 
 
 def _passive_least_squares(R, b, passive):

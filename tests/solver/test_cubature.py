@@ -84,6 +84,63 @@ def test_greedy_nnls_weights_nonnegative_and_residual_never_grows():
     assert history[-1] <= optimum + 1e-9
 
 
+def test_greedy_nnls_several_picks_per_block_recover_the_sparse_combination():
+    """Later picks of a block are scored in k-space (r^T c = b^T c - w^T A^T c) among the
+    block's best first scores: they must still find the exact sparse solution."""
+    A, truth, target = sparse_problem(seed=4, support=12)
+    for per_block in (4, 12):
+        picked, weights, history = cubature.greedy_nnls(A, target, tol=1e-10, max_picks=40,
+                                                        picks_per_block=per_block)
+        np.testing.assert_array_equal(np.sort(picked), np.flatnonzero(truth))
+        np.testing.assert_allclose(full_weights(picked, weights, A.shape[1]), truth, atol=1e-9)
+        assert history[-1] <= 1e-10 and np.all(np.diff(history) <= 1e-12)
+
+
+def test_gram_cholesky_fit_is_the_qr_of_the_picked_columns():
+    """The k x k reduction grown from inner products only: R is Householder QR's R (signs
+    made positive), and |R w - Qb|^2 + |b|^2 - |Qb|^2 is the tall residual for any w."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(200, 30)) @ np.diag(np.logspace(0, 3, 30))      # cond ~ 1e3
+    b = rng.normal(size=200)
+    fit = cubature._IncrementalNNLS(b, 30)
+    for start in range(0, 30, 7):                      # blocks of inner products, as in picks
+        block = A[:, start:start + 7]
+        cross, target_inner, gram = fit.inner_products(block)
+        for j in range(block.shape[1]):
+            assert fit.add(start + j, block[:, j], cross[:, j], target_inner[j], gram[j, j])
+            cross = np.vstack([cross, gram[j]])
+    _, R = np.linalg.qr(A)
+    R *= np.sign(np.diag(R))[:, None]
+    np.testing.assert_allclose(fit.R, R, rtol=1e-9, atol=1e-9 * np.abs(R).max())
+    w = rng.uniform(0.0, 1.0, 30)
+    reduced_sq = np.sum((fit.R @ w - fit.Qb) ** 2) + b @ b - fit.Qb @ fit.Qb
+    assert reduced_sq == pytest.approx(np.sum((A @ w - b) ** 2), rel=1e-9)
+    dependent = A[:, :2].sum(axis=1)                       # in the span: not appended
+    cross, target_inner, gram = fit.inner_products(dependent[:, None])
+    assert not fit.add(99, dependent, cross[:, 0], target_inner[0], gram[0, 0])
+    assert fit.size == 30
+
+
+def test_warm_active_set_ends_at_a_constrained_optimum_without_raising_the_misfit():
+    """From feasible weights plus new columns at 0, the warm-started active set returns
+    w >= 0 whose misfit is no larger, with a zero gradient on its support (KKT), and equals
+    scipy's NNLS when it keeps every column it started from."""
+    rng = np.random.default_rng(6)
+    R = np.triu(rng.normal(size=(40, 40))) + 6.0 * np.eye(40)
+    b = rng.normal(size=40)
+    start = np.zeros(40)
+    start[:30], _ = nnls(R[:, :30], b)                     # optimum before 10 new columns
+    w = cubature._warm_active_set(R, b, start, 10)
+    assert np.all(w >= 0.0)
+    assert np.linalg.norm(R @ w - b) <= np.linalg.norm(R @ start - b) + 1e-12
+    support = w > 0.0
+    assert 0 < support.sum() < 40                          # some weights hit the bound
+    gradient = R.T @ (R @ w - b)
+    np.testing.assert_allclose(gradient[support], 0.0, atol=1e-9 * np.abs(R.T @ b).max())
+    if np.all(gradient[~support] >= -1e-9):                # KKT everywhere: the NNLS optimum
+        np.testing.assert_allclose(w, nnls(R, b)[0], atol=1e-9)
+
+
 def test_greedy_nnls_progress_can_abort():
     A, _, target = sparse_problem()
     calls = []
