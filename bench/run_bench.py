@@ -1216,7 +1216,8 @@ def table(title, rows, columns):
 # Rows measured with the baseline's solver and the current one back to back (--baseline REV):
 # (case, arg, the figures compared; a trailing * matches every index of a list of rows).
 COMPARED = [
-    ("reduced_rs", "10k", ["prepare_seconds", "cubature_seconds", "basis_seconds", "max_error"]),
+    ("cubature", "10k:20", ["cubature_seconds", "prepare_seconds", "fit_residual", "max_error",
+                            "mean_error"]),
     ("dynamics", "20", ["steps_per_second", "safe_steps_per_second", "stvk_steps_per_second",
                         "prepare_seconds"]),
     ("spacetime", "20:200,400,800", ["rows[*].seconds", "rows[*].gn_iterations",
