@@ -7,17 +7,20 @@ input's triangle count (a 200k-triangle mesh was still at 5 % after 150 s), whil
 makes at a given edge length need far fewer: a closed surface meshed at edge L has about
 area / (sqrt(3)/4 L^2) triangles. So a surface with more than ``triangle_budget`` triangles is
 simplified first by libigl's edge-collapse ``igl.decimate``, which keeps a closed manifold
-closed and manifold (the proxy keeps edges about half the tet edge, so its error stays well
-below the tet size). A surface that is not a closed edge-manifold (it is then fTetWild's job to
-repair) is passed on as it is.
+closed and manifold. The proxy's edges are about the tet edge: fTetWild refines the tets near
+every input triangle, so a finer proxy only made more tets and slower meshing (cow 2,492 proxy
+triangles: 8,842 tets, 6.3 CPU s; 622: 4,153 tets, 4.0 s, the smallest dihedral angle unchanged;
+a unit sphere's proxy stays within 0.09 tet edges of it). So every closed surface of more than
+``MIN_BUDGET`` triangles gets one, not only dense ones. A surface that is not a closed
+edge-manifold (it is then fTetWild's job to repair) is passed on as it is.
 
 Shapes: V (n, 3) float vertices [m], F (m, 3) int triangles.
 """
 import igl
 import numpy as np
 
-PROXY_EDGE_FRACTION = 0.5   # proxy edge / tet edge
-MIN_BUDGET = 2000           # never simplify below this many triangles
+PROXY_EDGE_FRACTION = 1.0   # proxy edge / tet edge (0.5 before: twice the time, no better tets)
+MIN_BUDGET = 500            # never simplify below this many triangles
 
 
 def surface_area(V, F):
