@@ -419,10 +419,20 @@ def test_the_estimate_counts_what_the_modifiers_make(ext):
     bpy.context.view_layer.update()
     triangles, meshed = ext.bridge.estimates.mesh_estimate(bar, bar.rs_elastic)
     assert triangles == 64 * 48 and meshed == min(triangles, ext.solver.proxy.MIN_BUDGET)
-    seconds = ext.solver.proxy.tetwild_seconds(meshed)
+    seconds = ext.solver.proxy.tetwild_seconds(meshed, estimated_thinness(ext, bar))
     assert panel_estimate() == (f"fTetWild meshes a {meshed:,}-triangle proxy of {triangles:,}: "
                                 f"roughly {seconds:.0f} s (limit 120 s)")
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+
+
+def estimated_thinness(ext, obj):
+    """The panel's thinness (from polygon areas and centres), checked against the solver's of the
+    evaluated surface's triangles (same divergence theorem, another path)."""
+    thinness = ext.bridge.estimates.surface_estimate(obj, obj.rs_elastic)[3]
+    V, F = evaluated_surface(ext, obj)
+    assert thinness == pytest.approx(
+        ext.solver.proxy.surface_thinness(V, F, obj.rs_elastic.edge_length), rel=1e-3)
+    return thinness
 
 
 def open_sphere(segments=128, rings=64):
@@ -445,13 +455,13 @@ def test_a_dense_open_surface_is_refused_at_once_with_its_estimate(ext):
     """Not a closed manifold, so no proxy: fTetWild would mesh all of it. Its estimate is over
     the limit, so Prepare refuses before fTetWild starts, and the panel says so first."""
     sphere = open_sphere()
-    sphere.rs_elastic.mesher_time_limit = 10.0
+    sphere.rs_elastic.mesher_time_limit = 5.0
     triangles = sum(len(p.vertices) - 2 for p in sphere.data.polygons)
-    seconds = ext.solver.proxy.tetwild_seconds(triangles)
-    assert seconds > 10.0
+    seconds = ext.solver.proxy.tetwild_seconds(triangles, estimated_thinness(ext, sphere))
+    assert seconds > 5.0
     assert ext.bridge.estimates.mesh_estimate(sphere, sphere.rs_elastic) == (triangles, triangles)
     assert panel_estimate() == (f"fTetWild meshes all {triangles:,} triangles (not a closed "
-                                f"manifold, so no proxy): roughly {seconds:.0f} s (limit 10 s)")
+                                f"manifold, so no proxy): roughly {seconds:.0f} s (limit 5 s)")
     drawn = draw_all()                                  # the line, wrapped after its ': '
     assert ("label", "Over the Time Limit:") in drawn
     assert ("label", "a new tet mesh is refused") in drawn
@@ -460,7 +470,7 @@ def test_a_dense_open_surface_is_refused_at_once_with_its_estimate(ext):
     assert time.monotonic() - start < 10.0
     assert message == (f"'Sphere' is not a closed manifold, so fTetWild would mesh all "
                        f"{triangles:,} of its triangles, roughly {seconds:.0f} s, over its Time "
-                       "Limit of 10 s: close the surface so that a simplified proxy can stand "
+                       "Limit of 5 s: close the surface so that a simplified proxy can stand "
                        "in for it, or raise the Time Limit")
     assert ext.bridge.stage_cache.stats["tetrahedralize"] == 0
 
