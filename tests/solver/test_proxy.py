@@ -78,3 +78,17 @@ def test_open_or_small_surfaces_pass_unchanged():
     assert not simplified and U is not None and np.array_equal(G, open_F)
     U, G, simplified = proxy.proxy_surface(V, F, len(F))
     assert not simplified and np.array_equal(G, F)
+
+
+def test_thinness_is_area_times_edge_over_volume():
+    """Oracles: a unit sphere's area x edge / volume is 3 x edge (the icosphere's own area and
+    volume within 0.5 %); the clip at THINNESS_RANGE; the estimate grows with thinness and
+    triangles."""
+    V, F = sphere(4)
+    diagonal = np.linalg.norm(np.ptp(V, axis=0))
+    edge = 0.2 * diagonal
+    assert proxy.surface_thinness(V, F, 0.2) == pytest.approx(3.0 * edge, rel=5e-3)
+    assert proxy.thinness(1.0, 1e-12, 1.0) == proxy.THINNESS_RANGE[1]
+    assert proxy.thinness(1.0, 1.0, 1e-6) == proxy.THINNESS_RANGE[0]
+    assert proxy.tetwild_seconds(1000, 2.0) == pytest.approx(2.0 * proxy.tetwild_seconds(1000))
+    assert proxy.tetwild_seconds(2000) > proxy.tetwild_seconds(1000)
