@@ -150,11 +150,12 @@ def tetrahedralize_table(rows):
         if "error" in r:
             lines.append(f"| {r['arg']} | error: {r['error']} |")
             continue
+        estimate, below_10 = r["estimate_seconds"], 100 * r["below_10_degrees"]
         lines.append(f"| {r['mesh']} | {r['surface_faces']:,} | {r['meshed_faces']:,} "
-                     f"| {r['tets']:,} | {r['min_dihedral']:.1f} | {100 * r['below_10_degrees']:.2f} % "
+                     f"| {r['tets']:,} | {r['min_dihedral']:.1f} | {below_10:.2f} % "
                      f"| {r['proxy_seconds']:.2f} | {r['seconds']:.2f} | {r['cpu_seconds']:.2f} "
-                     f"| {r['estimate_seconds']:.1f} | {r['estimate_seconds'] / r['cpu_seconds']:.2f} "
-                     f"| {r['estimate_seconds'] / r['seconds']:.2f} |")
+                     f"| {estimate:.1f} | {estimate / r['cpu_seconds']:.2f} "
+                     f"| {estimate / r['seconds']:.2f} |")
     lines += ["", f"This run's fit (``mesher_fit``, CPU seconds): thinness x ({fit[0]:.2f} s + "
               f"{1000 * fit[1]:.3f} ms per meshed triangle)."]
     return "\n".join(lines) + "\n"

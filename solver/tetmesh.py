@@ -97,8 +97,9 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=DEFAULT_TIM
     num_threads: fTetWild threads, 0 = all cores; should_cancel: optional callable polled a few
     times a second, and when it returns True the worker is killed and TetMeshError raised;
     stop_energy, max_iterations: fTetWild's optimisation stops at that AMIPS energy or after that
-    many passes (``STOP_ENERGY``, ``MAX_ITERATIONS``). Vertices no face uses are ignored, and fTetWild sees the surface centred and scaled to a
-    unit bounding-box diagonal (module docstring).
+    many passes (``STOP_ENERGY``, ``MAX_ITERATIONS``). Vertices no face uses are ignored, and
+    fTetWild sees the surface centred and scaled to a unit bounding-box diagonal (module
+    docstring).
     Returns X (N, 3) float64 and T (E, 4) int64, positively oriented, every node used.
     Raises TetMeshError for unusable input or when fTetWild fails or crashes, and its subclass
     TetMeshTimeout when it runs out of time.
