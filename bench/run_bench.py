@@ -60,27 +60,129 @@ def read_surface(path):
     return V, F
 
 
+def _children_cpu_seconds():
+    """User + system CPU seconds of this process's finished children (the fTetWild worker)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def case_tetrahedralize(name):
+    """fTetWild as Prepare runs it at the default settings on a shared mesh or ``knight256k``
+    (``prepare_surface``): the proxy (when the surface has more triangles than its budget), then
+    the worker. Wall and CPU seconds (CPU is steadier on a loaded machine), the tets and their
+    smallest dihedral angle, and the panel's estimate for the surface fTetWild meshed (the
+    inputs of ``mesher_fit``)."""
     import numpy as np
-    from solver import tetmesh
-    V, F = read_surface(MESHES / name)
+    from solver import preparation, proxy, tetmesh
+    V, F = prepare_surface(name)
+    meshing = preparation.MeshingSettings()
     start = time.perf_counter()
-    X, T = tetmesh.tetrahedralize(np.asarray(V, float), np.asarray(F, np.int64))
-    seconds = time.perf_counter() - start
-    return dict(mesh=name, surface_vertices=len(V), surface_faces=len(F), nodes=len(X),
-                tets=len(T), seconds=seconds)
+    P, G, closed = preparation.mesher_surface(V, F, meshing)
+    proxy_seconds = time.perf_counter() - start
+    cpu, start = _children_cpu_seconds(), time.perf_counter()
+    X, T = preparation.tet_mesh(P, G, meshing)
+    seconds, cpu = time.perf_counter() - start, _children_cpu_seconds() - cpu
+    quality = getattr(tetmesh, "min_dihedral_angles", None)     # absent in older revisions
+    angles = quality(X, T) if quality else np.full(1, np.nan)
+    thin = getattr(proxy, "surface_thinness", None)
+    thinness = thin(P, G, meshing.edge_length) if thin else 1.0
+    estimate = proxy.tetwild_seconds(len(G), thinness) if thin else proxy.tetwild_seconds(len(G))
+    return dict(mesh=name, surface_vertices=len(V), surface_faces=len(F), meshed_faces=len(G),
+                thinness=thinness, nodes=len(X), tets=len(T), proxy_seconds=proxy_seconds,
+                seconds=seconds, cpu_seconds=cpu, estimate_seconds=estimate,
+                min_dihedral=float(angles.min()), below_10_degrees=float(np.mean(angles < 10.0)))
 
 
-def case_prepare_dense(subdivisions):
-    """Prepare at the default settings (edge 0.05, 20 modes, automatic basis and cubature, a free
-    body) of a dense closed surface: the shared knight upsampled ``subdivisions`` times (4: 256k
-    triangles), stage by stage as Prepare Body runs them (``solver.preparation``)."""
+# fTetWild's CPU seconds (user + system, its threads summed) on the shared meshes with the shipped
+# defaults, as `--child tetrahedralize NAME` measured them (meshed triangles, seconds). CPU time
+# is what the estimate is fitted to: wall time on this shared 2-core machine was 3-15x the CPU
+# time while other work ran, and on an idle machine with n cores fTetWild's threads make the
+# wall time at most the CPU time. Refit after a change of defaults: measure each mesh once, put
+# the rows here, `--child mesher_fit recorded`, and copy the fit to proxy.TETWILD_SECONDS.
+# The first four: the shipped defaults (one run each, load ~17). The rest widen the triangle
+# range: fTetWild's own defaults (stop energy 10, 80 passes) on the whole surface or the old,
+# finer proxy, and the 12-triangle box of tests/solver/test_pins.py at edge 0.0198.
+MESHER_MEASURED = [
+    dict(mesh="spot.obj", meshed_faces=1500, thinness=0.982, cpu_seconds=1.81),
+    dict(mesh="cow.off", meshed_faces=1500, thinness=1.202, cpu_seconds=4.45),
+    dict(mesh="decimated-knight.off", meshed_faces=1000, thinness=2.01, cpu_seconds=4.73),
+    dict(mesh="octopus-low.mesh", meshed_faces=898, thinness=4.033, cpu_seconds=8.95),
+    dict(mesh="spot.obj whole", meshed_faces=5856, thinness=1.029, cpu_seconds=8.83),
+    dict(mesh="cow.off whole", meshed_faces=5520, thinness=1.295, cpu_seconds=16.69),
+    dict(mesh="spot.obj old proxy", meshed_faces=3150, thinness=1.03, cpu_seconds=3.81),
+    dict(mesh="box bar", meshed_faces=12, thinness=0.84, cpu_seconds=1.2),
+]
+# Not in the fit: knight256k's smooth 1,500-triangle proxy (thinness 1.83) took 1.66 CPU s, which
+# the fit overestimates 3x (4.9 s): sharp features, not thinness alone, keep fTetWild busy.
+
+
+def mesher_fit(rows):
+    """(a [s], b [s per triangle]) of CPU seconds = thinness x (a + b x meshed triangles)
+    through the rows' (meshed_faces, thinness, cpu_seconds), least squares in the relative
+    error, a, b >= 0: the panel's estimate (``proxy.TETWILD_SECONDS``)."""
+    import numpy as np
+    from scipy.optimize import lsq_linear
+    n = np.array([r["meshed_faces"] for r in rows], dtype=float)
+    t = np.array([r.get("thinness", 1.0) for r in rows], dtype=float)
+    s = np.array([r["cpu_seconds"] for r in rows], dtype=float)
+    design = np.column_stack([t, t * n]) / s[:, None]
+    fit = lsq_linear(design, np.ones_like(s), bounds=([0.0, 0.0], np.inf))
+    return float(fit.x[0]), float(fit.x[1])
+
+
+def case_mesher_fit(arg):
+    """The fit of MESHER_MEASURED ("recorded") and each row's fitted / measured CPU seconds."""
+    a, b = mesher_fit(MESHER_MEASURED)
+    fitted = [r["thinness"] * (a + b * r["meshed_faces"]) for r in MESHER_MEASURED]
+    return dict(fit=[a, b], rows=[dict(r, fitted=f, ratio=f / r["cpu_seconds"])
+                                  for r, f in zip(MESHER_MEASURED, fitted)])
+
+
+def tetrahedralize_table(rows):
+    """Markdown: fTetWild per shared mesh, the estimate against the measurement, and this run's
+    own fit (the estimate must be within 2x of the CPU seconds)."""
+    good = [r for r in rows if "error" not in r]
+    fit = mesher_fit(good) if len(good) >= 2 else (float("nan"), float("nan"))
+    lines = ["## Tetrahedralisation as Prepare runs it (proxy, then fTetWild at the default "
+             "settings: edge 0.05, envelope 1e-3)", "",
+             "| mesh | faces | meshed | tets | min dihedral ° | < 10° | proxy s | fTetWild s "
+             "| CPU s | estimate s | estimate / CPU | estimate / wall |", "|" + "---|" * 12]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['arg']} | error: {r['error']} |")
+            continue
+        estimate, below_10 = r["estimate_seconds"], 100 * r["below_10_degrees"]
+        lines.append(f"| {r['mesh']} | {r['surface_faces']:,} | {r['meshed_faces']:,} "
+                     f"| {r['tets']:,} | {r['min_dihedral']:.1f} | {below_10:.2f} % "
+                     f"| {r['proxy_seconds']:.2f} | {r['seconds']:.2f} | {r['cpu_seconds']:.2f} "
+                     f"| {estimate:.1f} | {estimate / r['cpu_seconds']:.2f} "
+                     f"| {estimate / r['seconds']:.2f} |")
+    lines += ["", f"This run's fit (``mesher_fit``, CPU seconds): thinness x ({fit[0]:.2f} s + "
+              f"{1000 * fit[1]:.3f} ms per meshed triangle)."]
+    return "\n".join(lines) + "\n"
+
+
+PREPARE_MESHES = {"cow": "cow.off", "spot": "spot.obj", "knight256k": "decimated-knight.off"}
+
+
+def prepare_surface(name):
+    """(V, F) of a Prepare case: a shared mesh, or ``knight256k``, the knight upsampled 4 times
+    (256k triangles)."""
     import igl
     import numpy as np
+    V, F = read_surface(MESHES / PREPARE_MESHES.get(name, name))
+    V, F = np.asarray(V, float), np.asarray(F, np.int64)
+    if name == "knight256k":
+        V, F = igl.upsample(V, F, number_of_subdivs=4)[:2]
+    return V, F
+
+
+def prepare_stages(V, F):
+    """Prepare at the default settings (edge 0.05, 20 modes, automatic basis and cubature, a free
+    body) of the surface (V, F), stage by stage as Prepare Body runs them
+    (``solver.preparation``): the row of ``case_prepare``."""
+    import numpy as np
     from solver import preparation
-    V, F = read_surface(MESHES / "decimated-knight.off")
-    V, F = igl.upsample(np.asarray(V, float), np.asarray(F, np.int64),
-                        number_of_subdivs=int(subdivisions))[:2]
     seconds, peaks = {}, {}
 
     def stage(name, work):
@@ -101,7 +203,43 @@ def case_prepare_dense(subdivisions):
                 nodes=len(X), tets=len(T), basis_size=deformer.basis_size,
                 cubature_tets=len(deformer.cubature_tets), seconds=seconds,
                 stage_peak_rss_mb=peaks, total_seconds=sum(seconds.values()),
+                mesher_seconds=seconds["proxy"] + seconds["tetrahedralize"],
                 peak_rss_mb=peak_rss_mb())
+
+
+def case_prepare(name):
+    """Prepare end to end at the default settings of cow, spot or knight256k (targets: cow and
+    spot < 10 s, knight256k < 15 s)."""
+    return dict(prepare_stages(*prepare_surface(name)), mesh=name)
+
+
+def case_prepare_dense(subdivisions):
+    """``prepare_stages`` of the shared knight upsampled ``subdivisions`` times (4: 256k
+    triangles)."""
+    import igl
+    import numpy as np
+    V, F = read_surface(MESHES / "decimated-knight.off")
+    V, F = igl.upsample(np.asarray(V, float), np.asarray(F, np.int64),
+                        number_of_subdivs=int(subdivisions))[:2]
+    return prepare_stages(V, F)
+
+
+def prepare_table(rows):
+    """Markdown: Prepare end to end per mesh, the mesher's share (proxy + fTetWild) apart."""
+    lines = ["## Prepare end to end at the default settings (free body, 20 modes; targets: cow "
+             "and spot < 10 s, knight256k < 15 s)", "",
+             "| mesh | triangles | proxy | tets | rB | cubature | mesher s | embed s | modes s "
+             "| reduced s | total s | peak RSS MB |", "|" + "---|" * 12]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['arg']} | error: {r['error']} |")
+            continue
+        t = r["seconds"]
+        lines.append(f"| {r['mesh']} | {r['triangles']:,} | {r['proxy_triangles']:,} "
+                     f"| {r['tets']:,} | {r['basis_size']} | {r['cubature_tets']} "
+                     f"| {r['mesher_seconds']:.1f} | {t['embed']:.1f} | {t['modes']:.1f} "
+                     f"| {t['reduced']:.1f} | {r['total_seconds']:.1f} | {r['peak_rss_mb']:.0f} |")
+    return "\n".join(lines) + "\n"
 
 
 def prepare_dense_table(row):
@@ -207,7 +345,8 @@ def case_rs_full(size, repeats=5):
 
 CASES = {"tetrahedralize": case_tetrahedralize, "modes": case_modes,
          "modes_agreement": case_modes_agreement, "rs_full": case_rs_full,
-         "prepare_dense": case_prepare_dense}
+         "prepare_dense": case_prepare_dense, "prepare": case_prepare,
+         "mesher_fit": case_mesher_fit}
 
 
 def _median_seconds(function, number, repeat=15):
@@ -1223,6 +1362,7 @@ COMPARED = [
     ("spacetime", "20:200,400,800", ["rows[*].seconds", "rows[*].gn_iterations",
                                      "rows[*].residual"]),
     ("take", "20:100", ["take_seconds", "fit_seconds", "continue_seconds", "continued_error"]),
+    ("prepare", "spot", ["*seconds*"]),
 ]
 
 
@@ -1277,7 +1417,8 @@ def main():
     sizes = ["10k"] if args.quick else list(BAR_SIZES)
     results = dict(machine=dict(python=platform.python_version(), cpu=platform.processor(),
                                 cores=__import__("os").cpu_count()),
-                   tetrahedralize=[run_child("tetrahedralize", m) for m in meshes],
+                   tetrahedralize=[run_child("tetrahedralize", m)
+                                   for m in meshes + ["knight256k"]],
                    modes=[run_child("modes", s + kind) for kind in ("", ":nd", ":chol")
                           for s in sizes],
                    modes_agreement=[run_child("modes_agreement", s) for s in sizes[:2]],
@@ -1285,12 +1426,8 @@ def main():
     output = pathlib.Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
     (output / "results.json").write_text(json.dumps(results, indent=2))
-    text = "# RS Elastic benchmarks\n\n" + table(
-        "Tetrahedralisation (fTetWild, edge 0.05 of the diagonal, envelope 1e-3)",
-        results["tetrahedralize"],
-        [("mesh", ("mesh", "{}")), ("surface faces", ("surface_faces", "{:,}")),
-         ("nodes", ("nodes", "{:,}")), ("tets", ("tets", "{:,}")), ("s", ("seconds", "{:.2f}"))]
-    ) + "\n" + table(
+    text = "# RS Elastic benchmarks\n\n" + tetrahedralize_table(results["tetrahedralize"])
+    text += "\n" + table(
         "Assembly and 20 linear modes (pinned 4:1:1 bar; shift-invert Lanczos on SuperLU ordered "
         "by its minimum degree (first) or by nested dissection (second), or on the supernodal "
         "Cholesky over that nested dissection (now the default); target at 100k: < 10 s, < 1 GB)",
@@ -1356,8 +1493,10 @@ def main():
     results["take"] = run_child("take", "20:100")
     (output / "results.json").write_text(json.dumps(results, indent=2))
     text += "\n" + take_table(results["take"])
-    results["prepare_dense"] = run_child("prepare_dense", "4")
+    results["prepare"] = [run_child("prepare", name) for name in PREPARE_MESHES]
+    results["prepare_dense"] = results["prepare"][-1]                # knight256k
     (output / "results.json").write_text(json.dumps(results, indent=2))
+    text += "\n" + prepare_table(results["prepare"])
     text += "\n" + prepare_dense_table(results["prepare_dense"])
     results["mesh_cache"] = run_mesh_cache_shot()
     (output / "results.json").write_text(json.dumps(results, indent=2))

@@ -283,9 +283,11 @@ def proxy_for(inputs, job):
     V, F, closed = preparation.mesher_surface(inputs.surface_vertices, inputs.surface_triangles,
                                               inputs.meshing, say=job.step)
     limit = inputs.mesher_time_limit
-    seconds = estimates.mesher_seconds(len(F))
+    thinness = proxy.surface_thinness(V, F, inputs.meshing.edge_length)
+    seconds = estimates.mesher_seconds(len(F), thinness)
     if seconds > limit:
-        raise InputError(estimates.over_limit(inputs.object_name, len(F), closed, limit))
+        raise InputError(estimates.over_limit(inputs.object_name, len(F), closed, limit,
+                                              thinness))
     if not closed:
         job.warn(f"'{inputs.object_name}' is not a closed manifold, so fTetWild meshes all "
                  f"{len(F):,} of its triangles (slower)")
@@ -314,8 +316,9 @@ def tet_stage(inputs, job):
                 X, T = preparation.tet_mesh(V, F, inputs.meshing, should_cancel=job.is_cancelled)
             except tetmesh.TetMeshTimeout as exc:
                 closed = closed and proxy.is_closed_manifold(F)     # a small surface is not tried
+                thinness = proxy.surface_thinness(V, F, inputs.meshing.edge_length)
                 raise InputError(estimates.out_of_time(inputs.object_name, len(F), closed,
-                                                       exc.limit)) from None
+                                                       exc.limit, thinness)) from None
             except tetmesh.TetMeshError as exc:
                 if job.is_cancelled():
                     raise Cancelled() from None

@@ -9,7 +9,8 @@ import numpy as np
 
 from ..solver import dynamics, proxy
 
-_MESHED = {}    # (object pointer, counts, edge length, budget) -> (triangles, meshed, closed)
+_MESHED = {}    # (object pointer, counts, edge length, budget) -> (triangles, meshed, closed,
+                #                                                  thinness)
 
 
 def _evaluated_mesh(obj):
@@ -33,13 +34,27 @@ def _is_closed(mesh):
     return bool(np.all(faces_per_edge[faces_per_edge > 0] == 2))
 
 
+def _volume(mesh, areas):
+    """|Enclosed volume| [m^3] of the mesh from its polygons' areas (n,), centres and normals:
+    the divergence theorem, exact for planar polygons."""
+    centres = np.empty(3 * len(mesh.polygons), dtype=np.float32)
+    normals = np.empty(3 * len(mesh.polygons), dtype=np.float32)
+    mesh.polygons.foreach_get("center", centres)
+    mesh.polygons.foreach_get("normal", normals)
+    centres = centres.reshape(-1, 3).astype(np.float64)
+    centres -= centres.mean(axis=0)
+    products = np.einsum("ij,ij->i", centres, normals.reshape(-1, 3))
+    return abs(float(np.dot(areas, products)) / 3.0)
+
+
 def surface_estimate(obj, settings):
-    """(triangles, triangles fTetWild will mesh, closed) of the object's evaluated mesh (its
-    modifiers applied), from its polygons' areas and the bounding box, without triangulating
-    (cached per mesh and settings). A surface that is not a closed manifold is meshed whole."""
+    """(triangles, triangles fTetWild will mesh, closed, thinness) of the object's evaluated mesh
+    (its modifiers applied), from its polygons' areas, centres and the bounding box, without
+    triangulating (cached per mesh and settings). A surface that is not a closed manifold is
+    meshed whole. thinness: ``proxy.thinness`` at the tet edge."""
     mesh = _evaluated_mesh(obj)
     if mesh is None or len(mesh.polygons) == 0:
-        return 0, 0, True
+        return 0, 0, True, 1.0
     key = (obj.as_pointer(), len(mesh.vertices), len(mesh.polygons), len(mesh.loops),
            settings.edge_length, settings.proxy_triangles)
     if key not in _MESHED:
@@ -53,9 +68,12 @@ def surface_estimate(obj, settings):
         budget = settings.proxy_triangles or proxy.budget_for(float(areas.sum()), diagonal,
                                                               settings.edge_length)
         closed = _is_closed(mesh)
+        thinness = proxy.thinness(float(areas.sum()), _volume(mesh, areas.astype(np.float64)),
+                                  settings.edge_length * diagonal)
         if len(_MESHED) > 64:
             _MESHED.clear()
-        _MESHED[key] = (triangles, min(triangles, budget) if closed else triangles, closed)
+        _MESHED[key] = (triangles, min(triangles, budget) if closed else triangles, closed,
+                        thinness)
     return _MESHED[key]
 
 
@@ -65,28 +83,28 @@ def mesh_estimate(obj, settings):
     return surface_estimate(obj, settings)[:2]
 
 
-def mesher_seconds(triangles):
-    """Rough seconds fTetWild takes for a surface of this many triangles."""
-    return proxy.tetwild_seconds(triangles)
+def mesher_seconds(triangles, thinness=1.0):
+    """Rough seconds fTetWild takes for a surface of this many triangles and thinness."""
+    return proxy.tetwild_seconds(triangles, thinness)
 
 
 def mesher_line(obj, settings):
     """(text, over the limit) for the Tet Mesh panel: what fTetWild meshes, roughly how long,
     and the time limit."""
-    triangles, meshed, closed = surface_estimate(obj, settings)
+    triangles, meshed, closed, thinness = surface_estimate(obj, settings)
     if not closed:
         what = f"all {triangles:,} triangles (not a closed manifold, so no proxy)"
     elif meshed < triangles:
         what = f"a {meshed:,}-triangle proxy of {triangles:,}"
     else:
         what = f"{triangles:,} triangles"
-    seconds, limit = mesher_seconds(meshed), settings.mesher_time_limit
+    seconds, limit = mesher_seconds(meshed, thinness), settings.mesher_time_limit
     return f"fTetWild meshes {what}: roughly {seconds:.0f} s (limit {limit:g} s)", seconds > limit
 
 
-def over_limit(object_name, triangles, closed, limit):
+def over_limit(object_name, triangles, closed, limit, thinness=1.0):
     """The refusal when fTetWild's estimate for `triangles` is over the time limit [s]."""
-    seconds = mesher_seconds(triangles)
+    seconds = mesher_seconds(triangles, thinness)
     if not closed:
         return (f"'{object_name}' is not a closed manifold, so fTetWild would mesh all "
                 f"{triangles:,} of its triangles, roughly {seconds:.0f} s, over its Time Limit "
@@ -97,9 +115,9 @@ def over_limit(object_name, triangles, closed, limit):
             "a coarser Edge Length, or a higher Time Limit")
 
 
-def out_of_time(object_name, triangles, closed, limit):
+def out_of_time(object_name, triangles, closed, limit, thinness=1.0):
     """The refusal when fTetWild ran to its time limit [s] on `triangles` and was stopped."""
-    seconds = mesher_seconds(triangles)
+    seconds = mesher_seconds(triangles, thinness)
     why = "" if seconds > 0.5 * limit else "; self-intersecting or very thin parts take far longer"
     if not closed:
         return (f"'{object_name}': fTetWild did not finish within its Time Limit of {limit:g} s "

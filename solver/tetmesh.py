@@ -31,6 +31,10 @@ from . import fem
 WORKER = Path(__file__).with_name("tetwild_worker.py")
 
 DEFAULT_TIME_LIMIT = 120.0  # [s] before the worker is killed (the Blender setting's default)
+# fTetWild's optimisation stops at this conformal AMIPS energy or after this many passes. Its own
+# defaults (10, 80) spent most of its time polishing: STOP_ENERGY_NOTE below.
+STOP_ENERGY = 10.0
+MAX_ITERATIONS = 20
 FLAT_TOLERANCE = 1e-6      # thinnest principal extent / largest, below which a surface is flat
 VOLUME_TOLERANCE = 1e-9    # |enclosed volume| / diagonal^3, below which nothing is enclosed
 
@@ -82,7 +86,8 @@ def check_surface(V, F):
 
 
 def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=DEFAULT_TIME_LIMIT,
-                   python=None, num_threads=0, should_cancel=None):
+                   python=None, num_threads=0, should_cancel=None, stop_energy=STOP_ENERGY,
+                   max_iterations=MAX_ITERATIONS):
     """Tet mesh of the closed triangle surface (V, F) by fTetWild in a separate process.
 
     V: (n, 3) float vertices [m]; F: (m, 3) int triangles (triangulate polygons first).
@@ -90,9 +95,11 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=DEFAULT_TIM
     timeout: seconds before the worker is killed (then TetMeshTimeout); python: interpreter to run
     the worker (default ``sys.executable``, which inside Blender is Blender's bundled Python);
     num_threads: fTetWild threads, 0 = all cores; should_cancel: optional callable polled a few
-    times a second, and when it returns True the worker is killed and TetMeshError raised.
-    Vertices no face uses are ignored, and fTetWild sees the surface centred and scaled to a
-    unit bounding-box diagonal (module docstring).
+    times a second, and when it returns True the worker is killed and TetMeshError raised;
+    stop_energy, max_iterations: fTetWild's optimisation stops at that AMIPS energy or after that
+    many passes (``STOP_ENERGY``, ``MAX_ITERATIONS``). Vertices no face uses are ignored, and
+    fTetWild sees the surface centred and scaled to a unit bounding-box diagonal (module
+    docstring).
     Returns X (N, 3) float64 and T (E, 4) int64, positively oriented, every node used.
     Raises TetMeshError for unusable input or when fTetWild fails or crashes, and its subclass
     TetMeshTimeout when it runs out of time.
@@ -103,8 +110,10 @@ def tetrahedralize(V, F, edge_length_fac=0.05, epsilon=1e-3, timeout=DEFAULT_TIM
     check_surface(V, F)
     V, F = _used_vertices(V, F)
     centre, diagonal = _normalisation(V)
-    X, T = _run_tetwild((V - centre) / diagonal, F, edge_length_fac, epsilon, timeout, python,
-                        num_threads, should_cancel)
+    options = dict(edge_length_fac=float(edge_length_fac), epsilon=float(epsilon),
+                   num_threads=int(num_threads), time_limit=float(timeout),
+                   stop_energy=float(stop_energy), max_iterations=int(max_iterations))
+    X, T = _run_tetwild((V - centre) / diagonal, F, options, timeout, python, should_cancel)
     T = fem.orient_tets(X, T)  # in unit coordinates, where volumes are best resolved
     return X * diagonal + centre, T
 
@@ -121,14 +130,13 @@ def _normalisation(V):
     return 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
 
 
-def _run_tetwild(V, F, edge_length_fac, epsilon, timeout, python, num_threads, should_cancel):
-    """fTetWild on (V, F) in the worker process: (X (N, 3) float64, T (E, 4) int64), nodes used."""
+def _run_tetwild(V, F, options, timeout, python, should_cancel):
+    """fTetWild on (V, F) in the worker process with the worker's scalar ``options`` (its
+    docstring): (X (N, 3) float64, T (E, 4) int64), every node used."""
     with tempfile.TemporaryDirectory(prefix="rs_elastic_tetwild_") as tmp:
         in_path, out_path = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         with open(in_path, "wb") as f:
-            np.savez(f, vertices=V, faces=F.astype(np.int32),
-                     edge_length_fac=float(edge_length_fac), epsilon=float(epsilon),
-                     num_threads=int(num_threads), time_limit=float(timeout))
+            np.savez(f, vertices=V, faces=F.astype(np.int32), **options)
         _run_worker(python or sys.executable, in_path, out_path, tmp, timeout, should_cancel)
         try:
             with np.load(out_path, allow_pickle=False) as out:
@@ -199,3 +207,19 @@ def _remove_unreferenced(X, T):
     """Drop nodes no tet uses (fTetWild can leave some) and renumber T accordingly."""
     used, T_new = np.unique(T, return_inverse=True)
     return X[used], T_new.reshape(T.shape).astype(np.int64)
+
+
+def min_dihedral_angles(X, T):
+    """(E,) smallest interior dihedral angle [deg] of each tet of (X (N, 3), T (E, 4)): 70.53 for
+    a regular tet, near 0 for a sliver (which stiffens the FEM and slows its solves)."""
+    P = np.asarray(X, dtype=np.float64)[np.asarray(T)]
+    faces = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+    normals = []
+    for k, (a, b, c) in enumerate(faces):       # face k is opposite vertex k: point away from it
+        n = np.cross(P[:, b] - P[:, a], P[:, c] - P[:, a])
+        n *= -np.sign(np.einsum("ij,ij->i", n, P[:, k] - P[:, a]))[:, None]
+        normals.append(n / np.linalg.norm(n, axis=1, keepdims=True))
+    cosines = [np.einsum("ij,ij->i", normals[i], normals[j])
+               for i in range(4) for j in range(i + 1, 4)]
+    # faces i and j meet at an edge; the interior angle there is pi minus their outward normals'
+    return np.degrees(np.pi - np.arccos(np.clip(np.min(cosines, axis=0), -1.0, 1.0)))

@@ -1,7 +1,7 @@
 """Dense surfaces are tetrahedralised through a simplified proxy (issue 14 item 1).
 
 Oracles: a 65k-triangle UV sphere (radius 1) at edge 0.1 meshes a proxy of at most the budget
-(``solver.proxy``, 2,000 triangles here), so its tet mesh is coarse and fast, yet its volume is
+(``solver.proxy``, 1,500 triangles here), so its tet mesh is coarse and fast, yet its volume is
 the sphere's within 2 %; the panel's estimate names the same counts; the proxy budget is part
 of the tet mesh's key (changing it makes a new tet mesh, nothing else is recomputed).
 """

@@ -59,6 +59,19 @@ def test_icosphere_tetrahedralises_to_its_volume():
     assert volume == pytest.approx(4.0 / 3.0 * np.pi, rel=0.02)       # the sphere it approximates
 
 
+def test_min_dihedral_angles_of_known_tets():
+    """Regular tet: arccos(1/3) = 70.53 deg at every edge; the corner of a cube: arccos(1/sqrt(3))
+    = 54.74 deg at its slanted edges (90 at the others); a sliver: near 0; either orientation."""
+    regular = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    corner = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    sliver = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1e-3]], float)
+    for X, expected in ((regular, np.degrees(np.arccos(1.0 / 3.0))),
+                        (corner, np.degrees(np.arccos(1.0 / np.sqrt(3.0))))):
+        angles = tetmesh.min_dihedral_angles(X, np.array([[0, 1, 2, 3], [1, 0, 2, 3]]))
+        np.testing.assert_allclose(angles, expected, rtol=1e-12)
+    assert tetmesh.min_dihedral_angles(sliver, np.array([[0, 1, 2, 3]]))[0] < 0.2
+
+
 def test_empty_surface_raises():
     with pytest.raises(tetmesh.TetMeshError, match="no faces"):
         tetmesh.tetrahedralize(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
