@@ -29,3 +29,29 @@ def drawn_panels(gui, draws=2, timeout=30.0):
             raise TimeoutError(f"the sidebar did not redraw in {timeout:.0f} s")
         gui.settle(0.05)
     return {tuple(item) for item in gui.run("result = DRAWN")}
+
+
+COPY_COMMAND = """
+try:
+    with override('UI'):
+        bpy.ops.ui.copy_python_command_button()
+    result = bpy.context.window_manager.clipboard
+except RuntimeError:            # no operator button under the pointer
+    result = None
+"""
+
+
+def find_button(gui, idname, fx=0.75, step=10):
+    """Window pixel (x, y) of operator `idname`'s button in the sidebar, found the way a user
+    sees what a button does: the sidebar is scrolled to its end (wheel over it), then the pointer
+    goes up the column at fraction `fx` of its width and, at each stop, Blender's own Copy Python
+    Command says which operator button is under it (a button lights up under the pointer)."""
+    x, y, width, height = gui.rects()["sidebar"]
+    gui.mouse_move(x + fx * width, y + height / 2)
+    gui.xdotool("click", "--repeat", 60, "--delay", 5, 5)     # wheel down, to the end
+    gui.settle(0.1, at=(x + fx * width, y + height / 2))
+    for button_y in range(y + height - step, y, -step):
+        gui.mouse_move(x + fx * width, button_y)
+        if gui.run(COPY_COMMAND) == f"bpy.ops.{idname}()":
+            return x + fx * width, button_y
+    raise AssertionError(f"no {idname} button in the sidebar")
