@@ -29,11 +29,11 @@ result = [[op._job.fraction, op._job.message] for op in ops]
 """
 
 
-# Inside Blender, on the running Prepare: every cancel check the work makes (the job's event is
-# read by job.step and job.is_cancelled, and by the mesher's poll), when the operator heard Esc
+# Inside Blender, on the running Prepare: every cancel check the work makes on its thread (the
+# job's event is read by job.step and job.is_cancelled, and by the mesher's poll), when the operator heard Esc
 # (the job's cancel) and when it ended (its cleanup).
 WATCH = """
-import sys, time
+import sys, threading, time
 ops = [op for op in bpy.context.window_manager.windows[0].modal_operators
        if op.bl_idname in ("RS_ELASTIC_OT_prepare", "rs_elastic.prepare")]
 operator, job = ops[0], ops[0]._job
@@ -46,7 +46,12 @@ def timed(function, key):
         finally:
             TIMES[key].append([start, time.monotonic() - start])
     return wrapper
-job._cancel.is_set = timed(job._cancel.is_set, "checks")
+is_set = job._cancel.is_set
+def worker_check():                 # the panel's draw and the modal handler read it too
+    if threading.current_thread() is not job._thread:
+        return is_set()
+    return timed(is_set, "checks")()
+job._cancel.is_set = worker_check
 job.cancel = timed(job.cancel, "cancel")
 operator._cleanup = timed(operator._cleanup, "cleanup")
 """

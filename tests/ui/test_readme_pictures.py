@@ -8,7 +8,7 @@ and the handle are in the picture, the picture is not blank) and that the README
 import re
 
 from blender_gui import PROJECT
-from sidebar import drawn_panels
+from sidebar import drawn_panels, scroll
 from test_panel_words import SOLVE, SOLVED
 
 PICTURES = PROJECT / "docs" / "images"
@@ -22,14 +22,6 @@ area = next(a for a in window.screen.areas if a.type == 'PROPERTIES')
 area.spaces.active.context = 'PHYSICS'
 result = [area.x, window.height - area.y - area.height, area.width, area.height]
 """
-
-
-def _scroll(gui, rect, clicks):
-    """Turn the mouse wheel over the middle of `rect` (x, y, w, h): down for clicks > 0."""
-    x, y, w, h = rect
-    gui.mouse_move(x + w / 2, y + h / 2)
-    gui.xdotool("click", "--repeat", abs(clicks), "--delay", 5, 5 if clicks > 0 else 4)
-    gui.settle(0.3, at=(x + w / 2, y + h / 2))
 
 
 def _picture(gui, name, rect):
@@ -70,18 +62,18 @@ def test_the_readme_pictures_show_the_panels_as_they_are(gui):
     sidebar = gui.rects()["sidebar"]
     try:
         # The sidebar for the prepared, solved body: its top, then scrolled to its end.
-        _scroll(gui, sidebar, -60)
+        scroll(gui, "VIEW_3D", "UI", -5)
         taken.append(_check(gui, "sidebar_body", sidebar,
                             ["RS_ELASTIC_PT_body", "RS_ELASTIC_PT_tet_mesh"]))
-        _scroll(gui, sidebar, 60)
+        scroll(gui, "VIEW_3D", "UI", 5)
         taken.append(_check(gui, "sidebar_spacetime_simulation", sidebar,
                             ["RS_ELASTIC_PT_spacetime", "RS_ELASTIC_PT_simulate"]))
 
         # The Physics tab, scrolled to its RS Elastic panels.
         properties = gui.run(PROPERTIES)
-        _scroll(gui, properties, 60)
+        scroll(gui, "PROPERTIES", "WINDOW", 5)
         taken.append(_check(gui, "physics_tab", properties, []))
-        _scroll(gui, properties, -60)
+        scroll(gui, "PROPERTIES", "WINDOW", -5)
 
         # A handle edit: the handle's Empty active at its key, the view framed on the body.
         gui.run("""
@@ -91,13 +83,12 @@ h.make_active(empty)
 obj.select_set(True)
 with override():
     bpy.ops.view3d.view_selected()
+    bpy.ops.view3d.zoom(delta=-1)
 empty.select_set(True)
 obj.select_set(False)
 """)
         view = gui.rects()["view"]
-        _scroll(gui, [view[0], view[1], view[2] - sidebar[2], view[3]], 3)   # zoom out a little
-        _scroll(gui, sidebar, 60)                 # the sidebar at its handles and solve
-        _scroll(gui, sidebar, -8)
+        scroll(gui, "VIEW_3D", "UI", 5, pixels=700)   # the sidebar at the handles and the solve
         gui.settle(0.5)
         x, y, w, h = sidebar
         edit = [max(view[0], x + w - 1100), view[1], min(1100, x + w - view[0]), view[3]]
@@ -111,7 +102,7 @@ obj.select_set(False)
                                                        "RS_ELASTIC_PT_spacetime"],
                             obj=gui.run("result = empty.name")))
     finally:
-        _scroll(gui, sidebar, -60)
+        scroll(gui, "VIEW_3D", "UI", -5)
     # The README shows every picture the tier takes.
     shown = set(re.findall(r"!\[[^\]]*\]\(docs/images/([\w.-]+)\.png\)", README.read_text()))
     assert set(taken) <= shown, f"not in the README: {set(taken) - shown}"
