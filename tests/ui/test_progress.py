@@ -276,7 +276,6 @@ def _solve_and_cancel(gui):
     reports = gui.run("result = reports()")
     assert any("Solve and Bake: cancelled, nothing was changed" in line for line in reports), \
         reports
-    assert not any("baked frames" in line for line in reports), reports
     after = body_state(gui)
     assert {k: v for k, v in after.items() if k != "cache"} == \
         {k: v for k, v in before.items() if k != "cache"}
