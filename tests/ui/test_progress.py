@@ -190,7 +190,7 @@ with override():
 s = obj.rs_elastic
 s.iterations, s.tightness = 200, 1e6
 bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 120
-JOB = sys.modules["bl_ext.user_default.rs_elastic.bridge.jobs"].Job
+JOB = sys.modules[bpy.types.RS_ELASTIC_OT_solve_spacetime.__module__].jobs.Job   # the operator's
 JOB_IS_CANCELLED = JOB.is_cancelled
 CHECKS = []
 def slowed_check(self):
