@@ -29,3 +29,51 @@ def drawn_panels(gui, draws=2, timeout=30.0):
             raise TimeoutError(f"the sidebar did not redraw in {timeout:.0f} s")
         gui.settle(0.05)
     return {tuple(item) for item in gui.run("result = DRAWN")}
+
+
+COPY_COMMAND = """
+try:
+    with override('UI'):
+        bpy.ops.ui.copy_python_command_button()
+    result = bpy.context.window_manager.clipboard
+except RuntimeError:            # no operator button under the pointer
+    result = None
+"""
+
+
+def find_button(gui, idname, fx=0.75, step=10):
+    """Window pixel (x, y) of operator `idname`'s button in the sidebar, found the way a user
+    sees what a button does: the sidebar is scrolled to its end, then the pointer
+    goes up the column at fraction `fx` of its width and, at each stop, Blender's own Copy Python
+    Command says which operator button is under it (a button lights up under the pointer)."""
+    x, y, width, height = gui.rects()["sidebar"]
+    scroll(gui, "VIEW_3D", "UI", 5)                           # to the end
+    gui.settle(0.1, at=(x + fx * width, y + height / 2))
+    for button_y in range(y + height - step, y, -step):
+        gui.mouse_move(x + fx * width, button_y)
+        if gui.run(COPY_COMMAND) == f"bpy.ops.{idname}()":
+            return x + fx * width, button_y
+    raise AssertionError(f"no {idname} button in the sidebar")
+
+
+SCROLL = """
+window = bpy.context.window_manager.windows[0]
+area = max((a for a in window.screen.areas if a.type == {area!r}), key=lambda a: a.width * a.height)
+region = next(r for r in area.regions if r.type == {region!r})
+with bpy.context.temp_override(window=window, screen=window.screen, area=area, region=region):
+    for _ in range({times}):
+        if {pages} > 0:
+            bpy.ops.view2d.scroll_down(page=True)
+        elif {pages} < 0:
+            bpy.ops.view2d.scroll_up(page=True)
+    if {pixels}:
+        bpy.ops.view2d.scroll_up(deltay={pixels})
+"""
+
+
+def scroll(gui, area, region, pages, pixels=0):
+    """Scroll a panel region (the sidebar: VIEW_3D, UI; the Properties editor: PROPERTIES,
+    WINDOW) by whole `pages` (down for pages > 0; it stops at either end) with Blender's own
+    View2D scrolling (Page Down / Page Up), then `pixels` up."""
+    gui.run(SCROLL.format(area=area, region=region, times=abs(pages), pages=pages,
+                          pixels=int(pixels)))

@@ -8,7 +8,7 @@ from panel_items import RECORDER
 from sidebar import drawn_panels
 
 QUICK_BAR = """
-import sys, time, blender_helpers as h
+import sys, threading, time, blender_helpers as h
 with override():
     obj = h.make_bar(cuts=3)
 obj.rs_elastic.edge_length = 0.1
@@ -147,6 +147,8 @@ def test_esc_stops_a_simulation_within_a_substep_with_nothing_changed(gui):
     delivered = time.monotonic() - pressed      # the key has reached X by the time xdotool returns
     _wait_until_ended(gui, "rs_elastic.simulate")
     times = gui.run("result = TIMES")
+    assert times["cleanup"] and times["cleanup"][0][0] > pressed, \
+        "the solve ended before Esc was pressed: make its iterations longer"
     assert len(times["cancel"]) == 1 and len(times["cleanup"]) == 1, times
     latency = sum(times["cleanup"][0]) - pressed
     heard = times["cancel"][0][0] - pressed               # the modal operator got the Esc
@@ -172,3 +174,113 @@ def test_esc_stops_a_simulation_within_a_substep_with_nothing_changed(gui):
         {k: v for k, v in before.items() if k != "cache"}
     assert gui.run("o = bpy.data.objects['Bar']; result = [o.data.shape_keys is None, "
                    "[m.name for m in o.modifiers]]") == before_keys
+
+
+# A handle keyed over a long range, many iterations allowed. This bar's solve is over in a
+# fraction of a second, too soon to look at its bar or press Esc in it: while this test runs,
+# each cancel check of a solve's job (the solver polls it between its steps) first sleeps
+# ITERATION seconds (Job.is_cancelled wrapped in the class; the solver, the operator and the
+# panel are untouched), and CHECKS records when each returned.
+ITERATION = 0.5
+SLOW_SOLVE = f"""
+obj = bpy.data.objects["Bar"]
+with override():
+    h.add_tip_handle(obj, {{1: (4.0, 0.5, 0.5), 60: (4.0, 0.5, 1.5), 120: (4.0, 1.0, 0.5)}})
+    h.make_active(obj)
+s = obj.rs_elastic
+s.iterations, s.tightness = 200, 1e6
+bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 120
+JOB = sys.modules[bpy.types.RS_ELASTIC_OT_solve_spacetime.__module__].jobs.Job   # the operator's
+JOB_IS_CANCELLED = JOB.is_cancelled
+CHECKS = []
+def slowed_check(self):
+    if self.idname == "rs_elastic.solve_spacetime" and threading.current_thread() is self._thread:
+        time.sleep({ITERATION})
+        CHECKS.append(time.monotonic())
+    return JOB_IS_CANCELLED(self)
+JOB.is_cancelled = slowed_check
+"""
+RESTORE_STEP = "JOB.is_cancelled = JOB_IS_CANCELLED"
+
+# What a cancelled solve must leave as it was, beside body_state: the mesh's shape keys, the
+# handle's Empty and its keys, and the solve's words on the object.
+SOLVE_STATE = """
+obj = bpy.data.objects["Bar"]
+empty = obj.rs_elastic.handles[0].empty
+curves = sys.modules["bl_ext.user_default.rs_elastic.bridge"].animation.fcurves(empty)
+result = {"shape_keys": obj.data.shape_keys is not None, "modifiers": [m.name for m in obj.modifiers],
+          "empty": list(empty.location), "keys": [[list(k.co) for k in c.keyframe_points]
+                                                  for c in curves],
+          "residuals": [h.residual for h in obj.rs_elastic.handles],
+          "history": len(obj.rs_elastic.solve_history)}
+"""
+
+# Esc heard (job.cancel) and the operator's end (its cleanup), timed inside Blender.
+WATCH_SOLVE = OPERATOR + """
+operator, job = ops[0], ops[0]._job
+TIMES = {"cancel": [], "cleanup": []}
+def timed(function, key):
+    def wrapper(*args, **kwargs):
+        start = time.monotonic()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            TIMES[key].append([start, time.monotonic() - start])
+    return wrapper
+job.cancel = timed(job.cancel, "cancel")
+operator._cleanup = timed(operator._cleanup, "cleanup")
+"""
+
+
+def test_solve_and_bake_draws_a_progress_bar_and_esc_cancels_it_with_nothing_changed(gui):
+    gui.run(QUICK_BAR, timeout=300)
+    gui.run(SLOW_SOLVE)
+    try:
+        _solve_and_cancel(gui)
+    finally:
+        gui.run(RESTORE_STEP)
+
+
+def _solve_and_cancel(gui):
+    before, before_solve = body_state(gui), gui.run(SOLVE_STATE)
+    gui.run("watch_panels()")
+    assert gui.run("with override():\n"
+                   "    result = sorted(bpy.ops.rs_elastic.solve_spacetime('INVOKE_DEFAULT'))") \
+        == ["RUNNING_MODAL"]
+    gui.run(_operator("rs_elastic.solve_spacetime") + WATCH_SOLVE)
+    # The bar in the Space-Time panel, at the job's fraction, once an iteration is done.
+    _check_bar(*_wait_for_progress(gui, "rs_elastic.solve_spacetime", "RS_ELASTIC_PT_spacetime",
+                                   0.0))
+    assert ("RS_ELASTIC_PT_spacetime", "Bar") in drawn_panels(gui)
+    gui.screenshot("progress")
+
+    # Esc in the middle of the solve.
+    pressed = time.monotonic()
+    gui.key("Escape")
+    delivered = time.monotonic() - pressed
+    _wait_until_ended(gui, "rs_elastic.solve_spacetime")
+    times = gui.run("result = TIMES")
+    assert times["cleanup"] and times["cleanup"][0][0] > pressed, \
+        "the solve ended before Esc was pressed: make its iterations longer"
+    assert len(times["cancel"]) == 1 and len(times["cleanup"]) == 1, times
+    latency = sum(times["cleanup"][0]) - pressed
+    starts = gui.run("result = CHECKS")
+    iteration = max(b - a for a, b in zip(starts, starts[1:]))
+    poll = gui.run("result = sys.modules['bl_ext.user_default.rs_elastic.bridge.jobs'].POLL")
+    bound = delivered + 2 * iteration + poll
+    print(f"\nSolve and Bake: Esc latency {1000 * latency:.0f} ms, heard after "
+          f"{1000 * (times['cancel'][0][0] - pressed):.0f} ms (key delivery "
+          f"{1000 * delivered:.0f} ms; cancel checks at most {1000 * iteration:.0f} ms apart "
+          f"over {len(starts)} checks; bound {1000 * bound:.0f} ms)")
+    assert latency < bound, f"Esc took {latency:.3f} s to end the solve (bound {bound:.3f} s)"
+
+    reports = gui.run("result = reports()")
+    assert any("Solve and Bake: cancelled, nothing was changed" in line for line in reports), \
+        reports
+    after = body_state(gui)
+    assert {k: v for k, v in after.items() if k != "cache"} == \
+        {k: v for k, v in before.items() if k != "cache"}
+    assert gui.run(SOLVE_STATE) == before_solve
+    bars = gui.run(RECORDER + "result = panel_items(['RS_ELASTIC_PT_spacetime'])"
+                   "['RS_ELASTIC_PT_spacetime']")
+    assert not [item for item in bars if item[0] == "progress"], bars
