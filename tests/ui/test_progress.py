@@ -193,14 +193,18 @@ bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 120
 JOB = sys.modules[bpy.types.RS_ELASTIC_OT_solve_spacetime.__module__].jobs.Job   # the operator's
 JOB_IS_CANCELLED = JOB.is_cancelled
 CHECKS = []
+# The worker waits at its first check until the test has seen the operator running modal, so a
+# solve that checks rarely cannot finish before the test's first look.
+GATE = threading.Event()
 def slowed_check(self):
     if self.idname == "rs_elastic.solve_spacetime" and threading.current_thread() is self._thread:
+        GATE.wait(60.0)
         time.sleep({ITERATION})
         CHECKS.append(time.monotonic())
     return JOB_IS_CANCELLED(self)
 JOB.is_cancelled = slowed_check
 """
-RESTORE_STEP = "JOB.is_cancelled = JOB_IS_CANCELLED"
+RESTORE_STEP = "GATE.set()\nJOB.is_cancelled = JOB_IS_CANCELLED"
 
 # What a cancelled solve must leave as it was, beside body_state: the mesh's shape keys, the
 # handle's Empty and its keys, and the solve's words on the object.
@@ -248,6 +252,7 @@ def _solve_and_cancel(gui):
                    "    result = sorted(bpy.ops.rs_elastic.solve_spacetime('INVOKE_DEFAULT'))") \
         == ["RUNNING_MODAL"]
     gui.run(_operator("rs_elastic.solve_spacetime") + WATCH_SOLVE)
+    gui.run("GATE.set()")
     # The bar in the Space-Time panel, at the job's fraction, once an iteration is done.
     _check_bar(*_wait_for_progress(gui, "rs_elastic.solve_spacetime", "RS_ELASTIC_PT_spacetime",
                                    0.0))
