@@ -358,12 +358,14 @@ def modes_stage(inputs, tet_body, job, tets_digest, pins, tet_youngs=None):
 
     def compute():
         _refuse_unless_computing(inputs.object_name, inputs.cached_only, "its linear modes are")
-        job.step(0.55, f"Computing {inputs.num_modes} linear modes")
+        title = f"Computing {inputs.num_modes} linear modes"
+        job.step(0.55, title)
         stage_cache.stats["modes"] += 1
         try:
-            return preparation.linear_modes(tet_body, youngs, inputs.poisson,
-                                            inputs.density, inputs.num_modes,
-                                            None if pins is None else pins.nodes)
+            return preparation.linear_modes(
+                tet_body, youngs, inputs.poisson, inputs.density, inputs.num_modes,
+                None if pins is None else pins.nodes,
+                progress=lambda f, message: job.step(0.55 + 0.15 * f, f"{title}: {message}"))
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
 

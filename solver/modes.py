@@ -103,7 +103,7 @@ def count_near_zero(eigenvalues, rel_tol=1e-6):
 
 
 def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
-                 factorisation="auto"):
+                 factorisation="auto", progress=lambda fraction, message: None):
     """Lowest ``num_modes`` deformation modes of (K, diag(masses) kron I3).
 
     K: (3N, 3N) sparse symmetric stiffness [N/m]; masses: (N,) lumped node masses [kg];
@@ -118,6 +118,9 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
     (supernodal when rest positions are given). All give the same modes to round-off; on large
     meshes the supernodal Cholesky is several times faster and nested dissection fills far less
     than minimum degree (``make bench``, modes rows).
+    progress(fraction, message) is called before each shift-invert solve (tens of them, a
+    fraction of a second apart on large bodies), so a caller can report and cancel there by
+    raising; fraction grows towards 1 with the solves (ARPACK's count is not known ahead).
     Returns ``LinearModes`` in ascending order.
     Raises ValueError when nothing can move, the request cannot be met or the mesh is unusable.
     """
@@ -159,7 +162,7 @@ def linear_modes(K, masses, num_modes, pinned_nodes=None, rest_positions=None,
     points = (None if rest_positions is None
               else np.asarray(rest_positions, dtype=np.float64)[free_nodes])
     vals, vecs = _lowest_eigenpairs(K_free, m_free, k, start=fields[:, 0], points=points,
-                                    factorisation=factorisation)
+                                    factorisation=factorisation, progress=progress)
     vals, vecs = canonical_basis(vals, vecs, m_free, fields)
     W = np.zeros((3 * n_nodes, num_modes))
     W[free_dofs] = vecs[:, n_rigid:wanted]
@@ -252,11 +255,13 @@ def _check_connectivity(K, pinned):
                          "vertex and would float freely; pin each part or join them")
 
 
-def _lowest_eigenpairs(K, m, k, start, points=None, factorisation="superlu_mmd"):
+def _lowest_eigenpairs(K, m, k, start, points=None, factorisation="superlu_mmd",
+                       progress=lambda fraction, message: None):
     """k lowest eigenpairs of K v = lambda diag(m) v; values ascending, vectors M-orthonormal.
 
     start: (n,) ARPACK's start vector (fixed, so the run is reproducible). points: (n / 3, 3)
-    node positions for the nested dissections; factorisation: see ``_shifted_solver``.
+    node positions for the nested dissections; factorisation: see ``_shifted_solver``;
+    progress: see ``linear_modes``.
     """
     if K.shape[0] <= DENSE_LIMIT:
         s = 1.0 / np.sqrt(m)  # symmetric scaling turns the problem into a standard one
@@ -266,9 +271,16 @@ def _lowest_eigenpairs(K, m, k, start, points=None, factorisation="superlu_mmd")
 
     M = sp.diags(m, format="csc")
     sigma = -SHIFT_FRACTION * float(np.mean(K.diagonal() / m))
-    op_inv = spla.LinearOperator(K.shape, matvec=_shifted_solver(K - sigma * M, points,
-                                                                 factorisation),
-                                 dtype=np.float64)
+    progress(0.0, "factoring the shifted stiffness")
+    solve = _shifted_solver(K - sigma * M, points, factorisation)
+    solves = 0
+
+    def reported_solve(b):
+        nonlocal solves
+        progress(solves / (solves + 4.0 * k), f"shift-invert solve {solves + 1}")
+        solves += 1
+        return solve(b)
+    op_inv = spla.LinearOperator(K.shape, matvec=reported_solve, dtype=np.float64)
     _, vecs = spla.eigsh(K, k=k, M=M, sigma=sigma, which="LM", OPinv=op_inv, v0=start)
     return _rayleigh_ritz(K, m, vecs)
 

@@ -99,16 +99,18 @@ def stiffness_scale(tet_body, vertex_weights, ratio):
     return fem.painted_youngs(1.0, ratio, tet_weights(tet_body, vertex_weights))
 
 
-def linear_modes(tet_body, youngs, poisson, density, count, pinned=None):
+def linear_modes(tet_body, youngs, poisson, density, count, pinned=None,
+                 progress=lambda fraction, message: None):
     """``modes.LinearModes``: ``count`` modes of the tet body for Young's modulus [Pa] (a
     number, or (E,) per tet for a painted body: ``PreparedBody.tet_youngs``), Poisson's ratio
-    and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free).
+    and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free); progress as in
+    ``modes.linear_modes``.
     ValueError when the pins hold every node or the material is not stable."""
     if pinned is not None and len(pinned) >= len(tet_body.nodes):
         raise ValueError("the pins hold every tet node: nothing is left free to move")
     K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, youngs, poisson)
     return modes.linear_modes(K, tet_body.lumped_masses(density), count, pinned,
-                              rest_positions=tet_body.nodes)
+                              rest_positions=tet_body.nodes, progress=progress)
 
 
 def cubature_size(settings, num_nodes, num_tets, num_modes):

@@ -268,3 +268,32 @@ def test_symmetric_cube_gets_one_basis_for_its_repeated_eigenvalues(monkeypatch)
                                     fem.lumped_masses(Xp, Tp, RHO), r, rest_positions=Xp)
     np.testing.assert_allclose(renumbered.vectors.reshape(len(X), 3, r),
                                dense.vectors.reshape(len(X), 3, r)[order], atol=1e-6 * scale)
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_progress_is_reported_between_solves_and_can_stop_them():
+    """The eigen solve reports before each shift-invert solve, fractions rising in [0, 1), and
+    an exception raised there (how Esc cancels a Prepare) ends it; reporting changes nothing."""
+    X, T, K, m = block_problem()
+    assert 3 * len(X) > modes.DENSE_LIMIT                  # the shift-invert path
+    pins = np.flatnonzero(X[:, 0] < 0.25)
+    fractions = []
+    reported = modes.linear_modes(K, m, 20, pins, rest_positions=X,
+                                  progress=lambda f, message: fractions.append(f))
+    plain = modes.linear_modes(K, m, 20, pins, rest_positions=X)
+    np.testing.assert_array_equal(reported.vectors, plain.vectors)
+    assert len(fractions) > 20                             # tens of solves, each reported
+    assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
+
+    calls = []
+
+    def stop_at_the_fifth(fraction, message):
+        calls.append(message)
+        if len(calls) == 5:
+            raise _Stop()
+    with pytest.raises(_Stop):
+        modes.linear_modes(K, m, 20, pins, rest_positions=X, progress=stop_at_the_fifth)
+    assert len(calls) == 5
