@@ -47,9 +47,7 @@ def numeric_items(row, prefix=""):
     items = {}
     for key, value in row.items():
         name = f"{prefix}{key}"
-        if isinstance(value, bool):
-            continue
-        if isinstance(value, (int, float)) and math.isfinite(value):
+        if isinstance(value, (int, float)) and math.isfinite(value):     # a bool as 0 or 1
             items[name] = float(value)
         elif isinstance(value, dict):
             items.update(numeric_items(value, name + "."))

@@ -1360,7 +1360,7 @@ COMPARED = [
     ("dynamics", "20", ["steps_per_second", "safe_steps_per_second", "stvk_steps_per_second",
                         "prepare_seconds"]),
     ("spacetime", "20:200,400,800", ["rows[*].seconds", "rows[*].gn_iterations",
-                                     "rows[*].residual"]),
+                                     "rows[*].converged", "rows[*].residual"]),
     ("take", "20:100", ["take_seconds", "fit_seconds", "continue_seconds", "continued_error"]),
     ("prepare", "spot", ["*seconds*"]),
 ]
