@@ -35,7 +35,7 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
             handle = settings.handles[settings.active_handle]
             box = layout.box()
             box.prop(handle, "empty")
-            box.prop_search(handle, "vertex_group", obj, "vertex_groups")
+            box.prop_search(handle, "vertex_group", obj, "vertex_groups", text="Group")
             box.prop(handle, "orientation", icon='ORIENTATION_GIMBAL')
             box.prop(handle, "follow")
             box.prop(handle, "weight")
