@@ -12,25 +12,7 @@ import scipy.linalg
 import scipy.optimize
 
 from solver import spacetime as st
-
-
-class QuadraticDeformer:
-    """Analytic nonlinear deformer q(z) = A z + 1/2 C(z, z), C symmetric in its last two."""
-
-    def __init__(self, m, rb, rng, curvature=0.3):
-        self.num_coords, self.basis_size = m, rb
-        self.A = rng.normal(size=(rb, m))
-        C = curvature * rng.normal(size=(rb, m, m))
-        self.C = 0.5 * (C + C.transpose(0, 2, 1))
-
-    def q_jacobian(self, z):
-        return self.q_jacobian_batch(np.asarray(z)[None])[0]
-
-    def q_batch(self, Z):
-        return Z @ self.A.T + 0.5 * np.einsum("bij,fi,fj->fb", self.C, Z, Z)
-
-    def q_jacobian_batch(self, Z):
-        return self.A[None] + np.einsum("bij,fj->fbi", self.C, Z)
+from test_spacetime import QuadraticDeformer
 
 
 def edit(frames, r=3, seed=0, keyframes=True, gamma=50.0):
