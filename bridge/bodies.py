@@ -1,15 +1,18 @@
 """Prepared bodies: the input snapshot (main thread) and the preparation stages (worker thread).
 
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
-Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins.
+Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins, at Young's
+modulus 1 Pa (`preparation.unit_stiffness_modes`); the body's modes are these with their
+eigenvalues scaled to its Young's modulus, so a change of Young's modulus reuses stages 2 and 3.
 Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates).
 Stage 4 (energy, StVK and Fung only): the energy cubature of the material's reduced potential
 (`solver.materials.prepare_potential`). Linear needs none (its potential is an exact quadratic
 form), so it has no such stage and writes no file.
 
 Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
-key hashes the tet mesh *actually used* (its arrays) with the material (a painted one's stiffness
-group weights and ratio too) and pins; the reduced key hashes the modes' arrays with the reduced
+key hashes the tet mesh *actually used* (its arrays) with the material but for Young's modulus
+(Poisson's ratio, density, a painted one's stiffness group weights and ratio) and pins; the
+reduced key hashes the modes' arrays with the reduced
 settings; the energy key hashes the tets' and the modes' arrays and a painted body's per-tet
 stiffness (what the cubature is trained on) with the material kind, every material parameter it
 is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fung only) and the
@@ -45,6 +48,9 @@ REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
 # Version of the pin rule (solver.embed.pin_surface); part of the modes key, so modes pinned
 # under another rule are rebuilt, not reused. Bump it when the rule changes.
 PIN_RULES = "surface pins 2: faces clamp by their tet-surface facets"
+
+# Version of what the modes stage holds; part of its key. Bump it when that changes.
+MODES_RULES = "modes 2: at Young's modulus 1 Pa, eigenvalues scaled by the body's"
 
 # Version of the painted stiffness rule (solver.preparation.stiffness_scale); part of a painted
 # body's modes key. Bump it when the rule changes.
@@ -99,12 +105,13 @@ class BodyInputs:
                                  ("proxy", self.proxy_triangles))
 
     def modes_key(self, tets_digest):
-        """Key of the modes of the tet mesh whose arrays hash to tets_digest."""
+        """Key of the modes (at Young's modulus 1 Pa) of the tet mesh whose arrays hash to
+        tets_digest: Young's modulus is not in it (``preparation.unit_stiffness_modes``)."""
         pins = (PIN_RULES, self.pin_weights, self.base_triangles, self.pins_hold_volume) \
             if self.pin_weights is not None else "free"
         painted = () if self.stiffness_weights is None else (
             (STIFFNESS_RULES, self.stiffness_weights, self.stiffness_ratio),)
-        return cache.content_key("modes", tets_digest, pins, self.youngs, self.poisson,
+        return cache.content_key("modes", MODES_RULES, tets_digest, pins, self.poisson,
                                  self.density, self.num_modes, *painted)
 
     def reduced_key(self, modes_digest):
@@ -350,11 +357,10 @@ def stiffness_scale(inputs, tet_body):
     return preparation.stiffness_scale(tet_body, inputs.stiffness_weights, inputs.stiffness_ratio)
 
 
-def modes_stage(inputs, tet_body, job, tets_digest, pins, tet_youngs=None):
-    """Linear modes for the material and the pins (``surface_pins``; None for a free body):
-    from memory, the disk cache, or eigsh. tet_youngs: (E,) a painted body's per-tet Young's
-    modulus [Pa] (None: the uniform inputs.youngs)."""
-    youngs = inputs.youngs if tet_youngs is None else tet_youngs
+def modes_stage(inputs, tet_body, job, tets_digest, pins, scale=None):
+    """Linear modes at Young's modulus 1 Pa for the pins (``surface_pins``; None for a free body)
+    and the rest of the material, a painted body's per-tet stiffness ``scale`` (E,) included:
+    from memory, the disk cache, or eigsh (``preparation.unit_stiffness_modes``)."""
 
     def compute():
         _refuse_unless_computing(inputs.object_name, inputs.cached_only, "its linear modes are")
@@ -362,9 +368,9 @@ def modes_stage(inputs, tet_body, job, tets_digest, pins, tet_youngs=None):
         job.step(0.55, title)
         stage_cache.stats["modes"] += 1
         try:
-            return preparation.linear_modes(
-                tet_body, youngs, inputs.poisson, inputs.density, inputs.num_modes,
-                None if pins is None else pins.nodes,
+            return preparation.unit_stiffness_modes(
+                tet_body, inputs.poisson, inputs.density, inputs.num_modes,
+                None if pins is None else pins.nodes, stiffness_scale=scale,
                 progress=lambda f, message: job.step(0.55 + 0.15 * f, f"{title}: {message}"))
         except ValueError as exc:
             raise InputError(f"'{inputs.object_name}': {exc}") from None
@@ -451,12 +457,15 @@ def prepare(inputs, job):
     tets_digest = stage_cache.digest("tets", tet_body)
     pins = surface_pins(inputs, tet_body)
     scale = stiffness_scale(inputs, tet_body)
-    linear_modes = modes_stage(inputs, tet_body, job, tets_digest, pins,
-                               None if scale is None else inputs.youngs * scale)
-    modes_digest = stage_cache.digest("modes", linear_modes)
-    deformer = reduced_stage(inputs, tet_body, linear_modes, job, modes_digest,
+    unit_modes = modes_stage(inputs, tet_body, job, tets_digest, pins, scale)
+    modes_digest = stage_cache.digest("modes", unit_modes)
+    deformer = reduced_stage(inputs, tet_body, unit_modes, job, modes_digest,
                              end=0.99 if inputs.energy is None else 0.9)
     keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
+    try:
+        linear_modes = preparation.modes_at(unit_modes, inputs.youngs)
+    except ValueError as exc:
+        raise InputError(f"'{inputs.object_name}': {exc}") from None
     body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest),
                         pinned_embedding=None if pins is None else pins.embedding,
                         stiffness_scale=scale)

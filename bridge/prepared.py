@@ -9,7 +9,7 @@ import collections
 from . import bodies, staleness
 from .scene import InputError
 
-_BODIES = collections.OrderedDict()   # prepared key -> PreparedBody
+_BODIES = collections.OrderedDict()   # (prepared key, reduced key, E) -> PreparedBody
 _LIMIT = 8
 
 
@@ -18,7 +18,9 @@ def for_object(obj):
     see staleness.stale_reason)."""
     if staleness.stale_reason(obj, cached=True):
         return None
-    key = obj.rs_elastic.prepared_key + obj.rs_elastic.reduced_key
+    settings = obj.rs_elastic
+    # Young's modulus is not in the prepared key (the modes are cached at 1 Pa and scaled).
+    key = (settings.prepared_key, settings.reduced_key, settings.youngs_modulus)
     if key in _BODIES:
         _BODIES.move_to_end(key)
         return _BODIES[key]

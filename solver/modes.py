@@ -68,6 +68,11 @@ class LinearModes:
         """Minimal natural frequency sqrt(lambda_1) in rad/s ([P15]'s nonlinearity indicator)."""
         return float(np.sqrt(max(self.eigenvalues[0], 0.0)))
 
+    def scaled(self, factor):
+        """These modes for the stiffness K times ``factor`` > 0 (M unchanged): the same vectors,
+        the eigenvalues times ``factor`` (K w = lambda M w gives (f K) w = (f lambda) M w)."""
+        return LinearModes(self.eigenvalues * float(factor), self.vectors, self.pinned_nodes)
+
     def to_arrays(self):
         """dict of numpy arrays for ``cache.save``."""
         return dict(eigenvalues=self.eigenvalues, vectors=self.vectors,

@@ -4,8 +4,10 @@
    ``proxy``) and its tet mesh (``tetmesh``), with the render mesh embedded (``embed``).
 2. ``surface_pins``: the pinned nodes and the embedding that holds pinned vertices
    (``embed.pin_surface``).
-3. ``linear_modes``: stiffness, lumped masses and the modes for the material and pins; a
-   painted material's per-tet Young's modulus comes from ``stiffness_scale``.
+3. ``unit_stiffness_modes``: stiffness, lumped masses and the modes for the pins, Poisson's
+   ratio and density at Young's modulus 1 Pa (a painted material's per-tet scale comes from
+   ``stiffness_scale``); ``modes_at`` scales their eigenvalues to the body's Young's modulus,
+   so a change of Young's modulus alone computes nothing again (``linear_modes``: both).
 4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``).
 5. ``energy_potential``: the energy cubature of a StVK or Fung material (``materials``).
 
@@ -99,18 +101,46 @@ def stiffness_scale(tet_body, vertex_weights, ratio):
     return fem.painted_youngs(1.0, ratio, tet_weights(tet_body, vertex_weights))
 
 
-def linear_modes(tet_body, youngs, poisson, density, count, pinned=None,
-                 progress=lambda fraction, message: None):
-    """``modes.LinearModes``: ``count`` modes of the tet body for Young's modulus [Pa] (a
-    number, or (E,) per tet for a painted body: ``PreparedBody.tet_youngs``), Poisson's ratio
-    and density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free); progress as in
+def unit_stiffness_modes(tet_body, poisson, density, count, pinned=None, stiffness_scale=None,
+                         progress=lambda fraction, message: None):
+    """``modes.LinearModes`` of the tet body at Young's modulus 1 Pa (times a painted body's
+    per-tet ``stiffness_scale`` (E,), ``PreparedBody.stiffness_scale``), Poisson's ratio and
+    density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free); progress as in
     ``modes.linear_modes``.
+
+    K is linear in Young's modulus and M does not depend on it, so the modes at E are these
+    with their eigenvalues times E (``LinearModes.scaled``) and the very same vectors: a
+    change of Young's modulus reuses them, and everything built on the vectors (the reduced
+    stage), instead of computing them again.
     ValueError when the pins hold every node or the material is not stable."""
     if pinned is not None and len(pinned) >= len(tet_body.nodes):
         raise ValueError("the pins hold every tet node: nothing is left free to move")
-    K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, youngs, poisson)
+    scale = 1.0 if stiffness_scale is None else stiffness_scale
+    K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, scale, poisson)
     return modes.linear_modes(K, tet_body.lumped_masses(density), count, pinned,
                               rest_positions=tet_body.nodes, progress=progress)
+
+
+def linear_modes(tet_body, youngs, poisson, density, count, pinned=None, stiffness_scale=None,
+                 progress=lambda fraction, message: None):
+    """``modes.LinearModes`` for Young's modulus ``youngs`` [Pa] (a painted body's at weight 1,
+    its per-tet ``stiffness_scale`` (E,) times that): ``unit_stiffness_modes``, scaled
+    (``modes_at``)."""
+    _check_youngs(youngs)
+    return modes_at(unit_stiffness_modes(tet_body, poisson, density, count, pinned,
+                                         stiffness_scale, progress), youngs)
+
+
+def modes_at(unit_modes, youngs):
+    """``unit_stiffness_modes``' result at Young's modulus ``youngs`` [Pa]. ValueError for a
+    Young's modulus that is not a positive number."""
+    _check_youngs(youngs)
+    return unit_modes.scaled(youngs)
+
+
+def _check_youngs(youngs):
+    if not np.isfinite(youngs) or not youngs > 0.0:
+        raise ValueError(f"Young's modulus must be a positive number of pascals, got {youngs!r}")
 
 
 def cubature_size(settings, num_nodes, num_tets, num_modes):
@@ -125,7 +155,9 @@ def cubature_size(settings, num_nodes, num_tets, num_modes):
 def reduced_deformer(tet_body, linear_modes, density, settings,
                      progress=lambda fraction, message: None):
     """The reduced RS deformer (``reduced.ReducedRS``) of the modes, trained on poses up to 180 deg;
-    progress(fraction in [0, 1], message)."""
+    progress(fraction in [0, 1], message). The eigenvalues only weigh the training poses'
+    modes relative to each other: Prepare passes ``unit_stiffness_modes``, so the deformer is
+    the same for every Young's modulus."""
     X, T = tet_body.nodes, tet_body.tets
     pinned = linear_modes.pinned_nodes
     recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned if len(pinned) else None)
@@ -155,8 +187,8 @@ def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinne
     uniform material, or (vertex weights (n,), ratio) of a stiffness group (``stiffness_scale``)."""
     tet_body = embedded(X, T, base_vertices)
     scale = None if stiffness is None else stiffness_scale(tet_body, *stiffness)
-    linear = linear_modes(tet_body, youngs if scale is None else youngs * scale, poisson,
-                          density, num_modes, pinned)
-    deformer = reduced_deformer(tet_body, linear, density, settings or ReducedSettings())
+    unit = unit_stiffness_modes(tet_body, poisson, density, num_modes, pinned, scale)
+    deformer = reduced_deformer(tet_body, unit, density, settings or ReducedSettings())
+    linear = modes_at(unit, youngs)
     return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding,
                         stiffness_scale=scale)

@@ -98,6 +98,42 @@ def test_stale_cache_is_rebuilt_per_stage(ext):
     assert (stats["tetrahedralize"], stats["modes"]) == (2, 3)
 
 
+def test_a_change_of_youngs_modulus_reuses_the_modes_and_the_reduced_stage(ext):
+    """The modes are cached at 1 Pa: a new Young's modulus scales their eigenvalues, and the
+    tet mesh, the modes and the reduced RS basis and cubature are all reused (from their files
+    here, as in a new session). The result equals an independent modal analysis at the new E."""
+    obj = prepare_bar(ext)
+    stats, settings = ext.bridge.stage_cache.stats, obj.rs_elastic
+    before = ext.bridge.prepared.for_object(obj)
+    keys, youngs = (settings.prepared_key, settings.reduced_key), settings.youngs_modulus
+    settings.youngs_modulus = 4.0 * youngs
+    assert ext.bridge.prepared.for_object(obj) is None          # stale until Prepare
+    ext.bridge.stage_cache._MEMORY.clear()
+    files = sorted(os.listdir(ext.bridge.stage_cache.cache_dirs()[0]))
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["tetrahedralize"], stats["modes"], stats["reduced"]) == (1, 1, 1)
+    assert sorted(os.listdir(ext.bridge.stage_cache.cache_dirs()[0])) == files
+    assert (settings.prepared_key, settings.reduced_key) == keys
+    after = ext.bridge.prepared.for_object(obj)
+    assert after is not before
+    np.testing.assert_array_equal(after.linear_modes.vectors, before.linear_modes.vectors)
+    np.testing.assert_array_equal(after.deformer.cubature_weights, before.deformer.cubature_weights)
+    np.testing.assert_allclose(after.linear_modes.eigenvalues,
+                               4.0 * before.linear_modes.eigenvalues, rtol=1e-12)
+    np.testing.assert_allclose(settings.frequencies, after.linear_modes.frequencies_hz, rtol=1e-6)
+    X, T = after.tet_body.nodes, after.tet_body.tets
+    K = ext.solver.fem.stiffness_matrix(X, T, settings.youngs_modulus, settings.poisson_ratio)
+    reference = ext.solver.modes.linear_modes(
+        K, after.tet_body.lumped_masses(settings.density), settings.num_modes,
+        after.linear_modes.pinned_nodes, rest_positions=X)
+    np.testing.assert_allclose(after.linear_modes.eigenvalues, reference.eigenvalues, rtol=1e-9)
+    settings.youngs_modulus = youngs                              # back: nothing computed either
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["modes"], stats["reduced"]) == (1, 1)
+    np.testing.assert_allclose(ext.bridge.prepared.for_object(obj).linear_modes.eigenvalues,
+                               before.linear_modes.eigenvalues, rtol=1e-12)
+
+
 def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
     obj = prepare_bar(ext)
     before = np.array(obj.rs_elastic.frequencies)
@@ -126,7 +162,7 @@ def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
     obj = prepare_bar(ext)
     folder = ext.bridge.stage_cache.cache_dirs()[0]
     old = set(os.listdir(folder))
-    obj.rs_elastic.youngs_modulus *= 3
+    obj.rs_elastic.density *= 3                       # new modes (Young's modulus would not do)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     new = set(os.listdir(folder))
     assert len(new) == 3 and len(old & new) == 1      # the tets are shared; old modes, reduced gone
@@ -303,7 +339,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     # Preparing the same body again keeps them; a new preparation drops them.
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["energy"] == 3 and len(energy_files(folder)) == 3
-    obj.rs_elastic.youngs_modulus *= 2
+    obj.rs_elastic.density *= 2
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["energy"] == 4 and len(energy_files(folder)) == 1
 

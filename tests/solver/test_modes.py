@@ -297,3 +297,38 @@ def test_progress_is_reported_between_solves_and_can_stop_them():
     with pytest.raises(_Stop):
         modes.linear_modes(K, m, 20, pins, rest_positions=X, progress=stop_at_the_fifth)
     assert len(calls) == 5
+
+
+# --- modes at Young's modulus 1 Pa, scaled (what Prepare caches) ------------------------------
+
+@pytest.mark.parametrize("painted", [False, True], ids=["uniform", "painted"])
+def test_modes_at_a_youngs_modulus_are_the_unit_modes_scaled(painted):
+    """K is linear in Young's modulus: the modes Prepare caches at 1 Pa, scaled, equal an
+    independent modal analysis of the stiffness at E (eigenvalues to eigsh's accuracy, vectors
+    with the same signs), and two moduli share the very same vectors."""
+    from solver import preparation
+    X, T = meshgen.box_tet_mesh((1.0, 0.2, 0.2), (10, 2, 2))
+    tet_body = preparation.embedded(X, T, X)
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    scale = (preparation.stiffness_scale(tet_body, 1.0 - X[:, 0], 0.25) if painted else None)
+    unit = preparation.unit_stiffness_modes(tet_body, NU, RHO, 6, pinned, scale)
+    for youngs in (E, 3.7e8):
+        scaled = preparation.linear_modes(tet_body, youngs, NU, RHO, 6, pinned, scale)
+        np.testing.assert_array_equal(scaled.vectors, unit.vectors)
+        np.testing.assert_array_equal(scaled.eigenvalues, unit.eigenvalues * youngs)
+        K = fem.stiffness_matrix(X, T, youngs if scale is None else youngs * scale, NU)
+        reference = modes.linear_modes(K, fem.lumped_masses(X, T, RHO), 6, pinned,
+                                       rest_positions=X)
+        np.testing.assert_allclose(scaled.eigenvalues, reference.eigenvalues, rtol=1e-9)
+        np.testing.assert_allclose(scaled.vectors, reference.vectors,
+                                   atol=1e-7 * np.abs(reference.vectors).max())
+
+
+@pytest.mark.parametrize("youngs", [0.0, -1e6, float("nan"), float("inf")])
+def test_a_youngs_modulus_that_is_not_positive_is_refused(youngs):
+    from solver import preparation
+    X, T = meshgen.box_tet_mesh((1.0, 0.2, 0.2), (4, 1, 1))
+    unit = preparation.unit_stiffness_modes(preparation.embedded(X, T, X), NU, RHO, 3,
+                                            np.flatnonzero(X[:, 0] < 1e-9))
+    with pytest.raises(ValueError, match="Young's modulus"):
+        preparation.modes_at(unit, youngs)

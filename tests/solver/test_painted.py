@@ -90,7 +90,7 @@ def painted_bar():
     tet_body = preparation.embedded(X, T, X)
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
     scale = preparation.stiffness_scale(tet_body, 1.0 - X[:, 0] / LENGTH, RATIO)
-    linear = preparation.linear_modes(tet_body, YOUNGS * scale, NU, RHO, 8, pinned)
+    linear = preparation.linear_modes(tet_body, YOUNGS, NU, RHO, 8, pinned, stiffness_scale=scale)
     body = body_module.PreparedBody(tet_body, linear, None, stiffness_scale=scale)
     return body, pinned
 
