@@ -49,7 +49,7 @@ def test_greedy_nnls_with_callable_columns_and_random_candidates():
 
     picked, weights, history = cubature.greedy_nnls(
         columns, target, tol=1e-10, max_picks=60, candidates=150, num_columns=A.shape[1],
-        rng=np.random.default_rng(2), refit_every=3)
+        rng=np.random.default_rng(2))
     assert max(requested) == 150                                  # only subsets are computed
     np.testing.assert_allclose(full_weights(picked, weights, A.shape[1]), truth, atol=1e-8)
     assert history[-1] <= 1e-10
@@ -68,14 +68,15 @@ def test_greedy_nnls_weights_nonnegative_and_residual_never_grows():
     A_pos = positive.random(size=(120, 60))
     target_pos = positive.random(120)
     for matrix, b in ((A, target), (A_pos, target_pos)):
-        for refit_every in (1, 4, 1000):              # 1000: least-squares updates + fallbacks
-            picked, weights, history = cubature.greedy_nnls(matrix, b, tol=1e-12, max_picks=60,
-                                                            refit_every=refit_every)
-            assert np.all(weights > 0.0)
-            assert np.all(np.diff(history) <= 1e-12)
-            # The returned cubature is the fit the history reports (no hidden negative weight).
-            achieved = np.linalg.norm(matrix[:, picked] @ weights - b) / np.linalg.norm(b)
-            assert achieved == pytest.approx(history[-1], rel=1e-10)
+        picked, weights, history = cubature.greedy_nnls(matrix, b, tol=1e-12, max_picks=60)
+        assert np.all(weights > 0.0)
+        assert np.all(np.diff(history) <= 1e-12)
+        # The returned cubature is the fit the history reports (no hidden negative weight).
+        achieved = np.linalg.norm(matrix[:, picked] @ weights - b) / np.linalg.norm(b)
+        assert achieved == pytest.approx(history[-1], rel=1e-10)
+        # ... and the NNLS optimum of the columns it picked (scipy's, an independent solver).
+        best, _ = nnls(matrix[:, picked], b)
+        np.testing.assert_allclose(weights, best, atol=1e-9 * np.abs(best).max())
     picked, weights, history = cubature.greedy_nnls(A, target, tol=1e-12, max_picks=60)
     assert history[-1] > 0.1                                       # not reachable with w >= 0
     # Once no column correlates positively with the residual, the fit is the global NNLS one.
@@ -121,24 +122,38 @@ def test_gram_cholesky_fit_is_the_qr_of_the_picked_columns():
     assert fit.size == 30
 
 
-def test_warm_active_set_ends_at_a_constrained_optimum_without_raising_the_misfit():
-    """From feasible weights plus new columns at 0, the warm-started active set returns
-    w >= 0 whose misfit is no larger, with a zero gradient on its support (KKT), and equals
-    scipy's NNLS when it keeps every column it started from."""
+def test_active_set_nnls_warm_or_cold_is_scipys_optimum_and_keeps_its_factor_exact():
+    """Lawson-Hanson from a cold start, and warm from the optimum of 30 columns after 10 new
+    ones (and R grown row by row, as picks grow it): w >= 0, the misfit no larger than where it
+    started, KKT (zero gradient on the support, none pointing into the bound off it), equal to
+    scipy.optimize.nnls; the kept QR of the free columns is a QR of them."""
     rng = np.random.default_rng(6)
     R = np.triu(rng.normal(size=(40, 40))) + 6.0 * np.eye(40)
     b = rng.normal(size=40)
-    start = np.zeros(40)
-    start[:30], _ = nnls(R[:, :30], b)                     # optimum before 10 new columns
-    w = cubature._warm_active_set(R, b, start, 10)
-    assert np.all(w >= 0.0)
-    assert np.linalg.norm(R @ w - b) <= np.linalg.norm(R @ start - b) + 1e-12
+    reference, _ = nnls(R, b)
+    free = cubature._PassiveQR()
+    for _ in range(30):
+        free.grow()
+    start = cubature.active_set_nnls(R[:30, :30], b[:30], np.zeros(30), free)
+    np.testing.assert_allclose(start, nnls(R[:30, :30], b[:30])[0], atol=1e-10)
+    for _ in range(10):                                   # 10 new picks: R gains rows
+        free.grow()
+    start = np.append(start, np.zeros(10))
+    before = np.linalg.norm(R @ start - b)
+    w = cubature.active_set_nnls(R, b, start, free)
+    assert np.all(w >= 0.0) and np.linalg.norm(R @ w - b) <= before + 1e-12
     support = w > 0.0
-    assert 0 < support.sum() < 40                          # some weights hit the bound
+    assert 0 < support.sum() < 40                          # some weights at the bound
+    assert sorted(free.columns) == list(np.flatnonzero(support))
     gradient = R.T @ (R @ w - b)
-    np.testing.assert_allclose(gradient[support], 0.0, atol=1e-9 * np.abs(R.T @ b).max())
-    if np.all(gradient[~support] >= -1e-9):                # KKT everywhere: the NNLS optimum
-        np.testing.assert_allclose(w, nnls(R, b)[0], atol=1e-9)
+    scale = np.abs(R.T @ b).max()
+    np.testing.assert_allclose(gradient[support], 0.0, atol=1e-9 * scale)
+    assert np.all(gradient[~support] >= -1e-9 * scale)
+    np.testing.assert_allclose(w, reference, atol=1e-10)
+    p = len(free.columns)
+    np.testing.assert_allclose(free.Q @ free.Rp, R[:, free.columns], atol=1e-10)
+    np.testing.assert_allclose(free.Q.T @ free.Q, np.eye(40), atol=1e-12)
+    np.testing.assert_allclose(np.tril(free.Rp[:p], -1), 0.0, atol=1e-12)
 
 
 def test_greedy_nnls_progress_can_abort():
