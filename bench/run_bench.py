@@ -1357,12 +1357,16 @@ def table(title, rows, columns):
 COMPARED = [
     ("cubature", "10k:20", ["cubature_seconds", "prepare_seconds", "fit_residual", "max_error",
                             "mean_error"]),
+    ("cubature", "10k:40", ["cubature_seconds", "prepare_seconds", "fit_residual", "max_error",
+                            "mean_error"]),
     ("dynamics", "20", ["steps_per_second", "safe_steps_per_second", "stvk_steps_per_second",
-                        "prepare_seconds"]),
+                        "prepare_seconds", "energy_cubature_seconds"]),
     ("spacetime", "20:200,400,800", ["rows[*].seconds", "rows[*].gn_iterations",
                                      "rows[*].converged", "rows[*].residual"]),
     ("take", "20:100", ["take_seconds", "fit_seconds", "continue_seconds", "continued_error"]),
     ("prepare", "spot", ["*seconds*"]),
+    ("prepare", "cow", ["*seconds*"]),
+    ("prepare", "knight256k", ["*seconds*"]),
 ]
 
 

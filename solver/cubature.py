@@ -14,12 +14,14 @@ Choices written down here:
   |A_S w - b|^2 = |R w - Qb|^2 + |b|^2 - |Qb|^2, so the NNLS of (R, Qb) (k x k) has the same
   minimiser as the tall problem (n x k, n = poses x rB). Hence no pose subsets are needed, and
   the residual never increases from one pick to the next (the old weights stay feasible).
-- Each re-fit is Lawson and Hanson's active-set NNLS, warm-started from the previous weights,
-  run to its optimality test: R is square and non-singular (dependent picks are refused), so
-  the NNLS minimiser is unique and this is the same fit ``scipy.optimize.nnls`` finds. The QR
-  of the columns with free weights is kept from one re-fit to the next by Givens insertions
+- Re-fits are Lawson and Hanson's active-set NNLS, warm-started from the previous weights.
+  Every EXACT_EVERY picks and at the end of every block it runs to its optimality test: R is
+  square and non-singular (dependent picks are refused), so the NNLS minimiser is unique and
+  this is the fit ``scipy.optimize.nnls`` finds; in between only the new pick joins the free
+  weights. The QR of the free columns is kept from one re-fit to the next by Givens insertions
   and deletions (``_PassiveQR``), so a re-fit after one more pick costs O(k^2), not O(k^3):
-  at 40 modes (k ~ 1,000 picks) fits from scratch took 50 of a 61 s training. The inner products a new column needs come from one BLAS-3 product per block of
+  at 40 modes (k ~ 1,000 picks) fits from scratch took 50 of a 61 s training.
+- The inner products a new column needs come from one BLAS-3 product per block of
   candidates, so the n x k picked columns are read twice per block, not several times per pick.
 - Candidates: each block is a fresh random subset of the unpicked elements, scored by the
   cosine between their column and the residual (only positive correlations can help with
@@ -131,9 +133,9 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
 
     Each pick takes the candidate with the largest cosine to the residual (after the block's
     first pick, among the ``SCREEN`` x picks_per_block best of its first scoring, re-scored
-    exactly in k-space: ``_picks_from_block``), then re-fits the weights: the NNLS optimum of
-    all picked columns, warm-started (module docstring). The weights stay >= 0 and the residual
-    cannot grow (the previous weights remain feasible).
+    exactly in k-space: ``_picks_from_block``), then re-fits the weights, warm-started (module
+    docstring); each block ends at the NNLS optimum of all picked columns. The weights stay
+    >= 0 and the residual cannot grow (the previous weights remain feasible).
     The residual is recomputed on all n rows after each block.
 
     Returns (picked (k,) int64 indices with w > 0, weights (k,) > 0, history: list of relative
