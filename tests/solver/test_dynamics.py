@@ -18,7 +18,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from solver import cubature, dynamics, fem, frames, materials, meshgen, modes, newton, reduced, rs
+from solver import (cubature, dynamics, fem, frames, materials, meshgen, modes, newton,
+                    preparation, reduced, rs)
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -369,16 +370,18 @@ def test_nonlinear_materials_stretch_less_when_hanging(soft_run):
 
 
 def test_energy_cubature_simulation_tracks_exact_potential(soft_run):
-    """StVK jelly swinging under gravity: a 150-tet energy cubature (of 1,536, trained on 200
-    poses up to 90 deg) against the exact all-tet potential, same deformer: within 1 % of the
-    diagonal over 2 s."""
+    """StVK jelly swinging under gravity: a 200-tet energy cubature (of 1,536, trained on 200
+    poses up to 90 deg; Prepare's size, ``preparation.ENERGY_TRAINING``) against the exact
+    all-tet potential, same deformer: within 1 % of the diagonal over 2 s. Measured over eight
+    seeds of the training: 0.11-0.65 % (with 150 tets 0.38-1.08 %, too close to the bound for
+    a test of one seed: which tets the greedy picks decides it)."""
     body = soft_run[0]
     material = materials.make_material("STVK", body["mu"], body["lam"])
     poses = cubature.training_poses(12, body["modes"].eigenvalues, 200, np.random.default_rng(3),
                                     max_rotation=np.radians(90.0), modal_rs=body["modal_rs"])
     tets, weights, info = materials.train_energy_cubature(
         material, body["modal_rs"], fem.tet_volumes(body["X"], body["T"]), poses, tol=1e-4,
-        max_tets=150, rng=np.random.default_rng(4))
+        max_tets=preparation.ENERGY_TRAINING["max_tets"], rng=np.random.default_rng(4))
     runs = []
     for potential in (nonlinear_potential(body, "STVK"),
                       nonlinear_potential(body, "STVK", (tets, weights))):
