@@ -66,10 +66,21 @@ class RS_ELASTIC_PT_spacetime(RSElasticPanel, bpy.types.Panel):
                 draw_lines(layout, line, ('CHECKMARK' if converged else 'ERROR') if i == 0
                            else 'BLANK1')
         if len(settings.solve_history):
-            col = layout.column(align=True)
-            col.label(text="Objective per iteration:")
-            for i, item in enumerate(settings.solve_history):
-                col.label(text=f"{i:3d}   {item.value:.6g}")
+            draw_objectives(layout, settings.solve_history)
+
+
+def draw_objectives(layout, history):
+    """The solve's objective, first and last, with every step's value in a sub-panel closed
+    by default: after the first steps they mostly agree to six digits, and a list of twenty
+    equal numbers hid the rest of the panel."""
+    first, last = history[0].value, history[-1].value
+    layout.label(text=f"Objective {first:.3g} to {last:.3g}")
+    header, body = layout.panel("rs_elastic_objective_steps", default_closed=True)
+    header.label(text=f"{len(history) - 1} Steps")
+    if body is not None:
+        col = body.column(align=True)
+        for i, item in enumerate(history):
+            col.label(text=f"{i:3d}   {item.value:.6g}")
 
 
 CLASSES = (RS_ELASTIC_UL_handles, RS_ELASTIC_PT_spacetime)

@@ -98,6 +98,10 @@ class _Node:
     def context_pointer_set(self, name, data):
         pass
 
+    def panel(self, idname, default_closed=False):
+        """(header row, body column) of a sub-panel as first drawn: no body while closed."""
+        return self._add('row'), None if default_closed else self._add('column')
+
     progress = separator
 
 

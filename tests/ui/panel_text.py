@@ -15,6 +15,9 @@ class _Recording:
         return None
     prop = prop_search = operator = menu = template_list = separator = progress = _skip
     context_pointer_set = _skip
+    def panel(self, idname, default_closed=False):
+        """(header, body) of a sub-panel as first drawn: no body while closed."""
+        return _Recording(self.log), None if default_closed else _Recording(self.log)
 
 
 def panel_labels(idname):
