@@ -41,6 +41,12 @@ class RecordingLayout:
         assert hasattr(bpy.types, idname), idname
         self.log.append(("menu", idname))
 
+    def panel(self, idname, default_closed=False):
+        """(header, body) of a sub-panel (UILayout.panel): the body is recorded too."""
+        assert "panel" in bpy.types.UILayout.bl_rna.functions   # this Blender has sub-panels
+        assert isinstance(idname, str) and idname and isinstance(default_closed, bool)
+        return RecordingLayout(self.log), RecordingLayout(self.log)
+
     def template_list(self, list_type, list_id, data, name, active_data, active_name, **kwargs):
         assert hasattr(bpy.types, list_type)
         assert name in data.bl_rna.properties and active_name in active_data.bl_rna.properties
