@@ -104,3 +104,24 @@ def test_a_rigged_body_shows_follow_rig_and_the_tet_estimate(ext):
     assert any("Rigged by 'Critter Rig'" in text for text in labels)
     triangles = sum(len(p.vertices) - 2 for p in obj.data.polygons)
     assert any(f"fTetWild meshes {triangles:,} triangles" in text for text in labels), labels
+
+
+def test_the_space_time_panel_shows_the_objective_before_and_after_and_every_step(ext):
+    """After a solve: one line with the first and last objective, a sub-panel headed by the
+    number of steps, and in it every recorded value (the solve's own history)."""
+    from blender_helpers import add_tip_handle, make_active
+    obj = make_bar(cuts=3)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.1, 3
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 8
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    add_tip_handle(obj, {1: (4.0, 0.5, 0.5), 8: (4.0, 0.5, 1.0)})
+    make_active(obj)
+    assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
+    history = [item.value for item in obj.rs_elastic.solve_history]
+    assert len(history) >= 2 and history[-1] < history[0]
+    labels = [text for kind, text in draw_all() if kind == "label"]
+    drawn = labels.count(f"Objective {history[0]:.3g} to {history[-1]:.3g}")
+    assert drawn >= 1                                   # the sidebar's and the Physics tab's
+    assert labels.count(f"{len(history) - 1} Steps") == drawn
+    steps = [text for text in labels if text[:3].strip().isdigit() and "   " in text]
+    assert steps == [f"{i:3d}   {value:.6g}" for i, value in enumerate(history)] * drawn
