@@ -12,12 +12,12 @@ form), so it has no such stage and writes no file.
 Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
 key hashes the tet mesh *actually used* (its arrays) with the material but for Young's modulus
 (Poisson's ratio, density, a painted one's stiffness group weights and ratio) and pins; the
-reduced key hashes the modes' arrays with the reduced
-settings; the energy key hashes the tets' and the modes' arrays and a painted body's per-tet
-stiffness (what the cubature is trained on) with the material kind, every material parameter it
-is trained with (Young's modulus and Poisson's ratio, and the stiffening for Fung only) and the
-training settings. So stages of different runs can never mix. Each stage is looked up in memory,
-then in its cache file (`stage_cache`), and computed only if neither has it.
+reduced key hashes the modes' arrays with the reduced settings; the energy key hashes the tets'
+and the modes' arrays and a painted body's per-tet stiffness (what the cubature is trained on)
+with the material kind, every material parameter it is trained with (Young's modulus and
+Poisson's ratio, and the stiffening for Fung only) and the training settings. So stages of
+different runs can never mix. Each stage is looked up in memory, then in its cache file
+(`stage_cache`), and computed only if neither has it.
 
 A preparation may be told to only load (``cached_only``: the command line's `--only bake`, a
 farm's Bake Only): a stage that is neither in memory nor in a cache file is then refused in one

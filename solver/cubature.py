@@ -275,7 +275,7 @@ class _IncrementalNNLS:
         the k x k reduction (``exact_residual`` recomputes it on the n rows)."""
         k = self.size
         R, Qb = self.R[:k, :k], self.Qb[:k]
-        entering = None if exact or k - 1 in self.free.columns else k - 1
+        entering = None if exact else k - 1          # add() left the new pick out of free
         self.weights = active_set_nnls(R, Qb, self.weights, self.free, self.largest,
                                        entering=entering)
         misfit = R @ self.weights - Qb
@@ -349,12 +349,12 @@ def active_set_nnls(R, b, weights, free, largest=None, max_rounds=None, entering
     k = R.shape[1]
     w = np.zeros(k)
     w[free.columns] = weights[free.columns]
-    largest = np.abs(R).max() if largest is None else largest
-    tolerance = 10.0 * np.finfo(float).eps * k * largest * max(np.abs(b).max(), 1e-300)
     if entering is not None:
         free.insert(R, int(entering))
         _free_step(R, b, w, free, int(entering))
         return w
+    largest = np.abs(R).max() if largest is None else largest
+    tolerance = 10.0 * np.finfo(float).eps * k * largest * max(np.abs(b).max(), 1e-300)
     refused = np.zeros(k, dtype=bool)
     for _ in range(max_rounds or 3 * k + 10):
         dual = R.T @ (b - R @ w)

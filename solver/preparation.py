@@ -126,9 +126,9 @@ def linear_modes(tet_body, youngs, poisson, density, count, pinned=None, stiffne
     """``modes.LinearModes`` for Young's modulus ``youngs`` [Pa] (a painted body's at weight 1,
     its per-tet ``stiffness_scale`` (E,) times that): ``unit_stiffness_modes``, scaled
     (``modes_at``)."""
-    _check_youngs(youngs)
-    return modes_at(unit_stiffness_modes(tet_body, poisson, density, count, pinned,
-                                         stiffness_scale, progress), youngs)
+    _check_youngs(youngs)                   # before the eigensolve, not after it
+    return unit_stiffness_modes(tet_body, poisson, density, count, pinned, stiffness_scale,
+                                progress).scaled(youngs)
 
 
 def modes_at(unit_modes, youngs):
