@@ -407,3 +407,25 @@ def test_esc_cancels_the_energy_training_and_writes_nothing(ext):
     assert isinstance(job.error, ext.bridge.jobs.Cancelled)
     assert energy_files(ext.bridge.stage_cache.cache_dirs()[0]) == []
     assert ext.bridge.simulation_inputs.energy_work(obj) is not None     # still to be trained
+
+
+def test_duplicates_with_other_youngs_moduli_share_the_stages_not_the_body(ext):
+    """A prepared object duplicated (Shift+D: its mesh copied, its tet mesh kept with it) and
+    given another Young's modulus: its Prepare computes nothing, and each object's body has its
+    own eigenvalues (the in-memory bodies are not mixed up although their prepared keys are
+    the same)."""
+    obj = prepare_bar(ext)
+    twin = obj.copy()
+    twin.data = obj.data.copy()
+    bpy.context.scene.collection.objects.link(twin)
+    twin.rs_elastic.youngs_modulus = 9.0 * obj.rs_elastic.youngs_modulus
+    bpy.context.view_layer.objects.active = twin
+    stats = ext.bridge.stage_cache.stats
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["tetrahedralize"], stats["modes"], stats["reduced"]) == (1, 1, 1)
+    assert twin.rs_elastic.prepared_key == obj.rs_elastic.prepared_key
+    mine = ext.bridge.prepared.for_object(obj).linear_modes.eigenvalues
+    theirs = ext.bridge.prepared.for_object(twin).linear_modes.eigenvalues
+    np.testing.assert_allclose(theirs, 9.0 * mine, rtol=1e-6)    # float32 moduli
+    np.testing.assert_allclose(twin.rs_elastic.frequencies,
+                               3.0 * np.array(obj.rs_elastic.frequencies), rtol=1e-6)
