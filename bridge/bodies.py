@@ -14,8 +14,9 @@ key hashes the tet mesh *actually used* (its arrays) with the material but for Y
 (Poisson's ratio, density, a painted one's stiffness group weights and ratio) and pins; the
 reduced key hashes the modes' arrays with the reduced settings; the energy key hashes the tets'
 and the modes' arrays and a painted body's per-tet stiffness (what the cubature is trained on)
-with the material kind, every material parameter it is trained with (Young's modulus and
-Poisson's ratio, and the stiffening for Fung only) and the training settings. So stages of
+with the material kind, every material parameter it is trained with but Young's modulus
+(Poisson's ratio, and the stiffening for Fung only) and the training settings: it is trained at
+1 Pa and serves every modulus (`preparation.energy_potential`). So stages of
 different runs can never mix. Each stage is looked up in memory, then in its cache file
 (`stage_cache`), and computed only if neither has it.
 
@@ -40,6 +41,8 @@ from .scene import InputError
 
 # How the energy cubature is trained; part of its key.
 ENERGY_TRAINING = preparation.ENERGY_TRAINING
+# Version of what the energy key leaves out; bump it when that changes.
+ENERGY_RULES = "energy-2: trained at Young's modulus 1 Pa"
 
 # Version of the automatic basis and cubature sizing and training range (solver.reduced): a
 # reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
@@ -132,10 +135,11 @@ class EnergyInputs:
 
     @functools.cached_property
     def parameters(self):
-        """The material parameters the cubature is trained with (Fung's stiffening for Fung only:
-        StVK's cubature does not depend on it, so changing it reuses StVK's file)."""
+        """The material parameters the cubature depends on (not Young's modulus: it is trained
+        at 1 Pa; Fung's stiffening for Fung only: StVK's cubature does not read it, so changing
+        it reuses StVK's file)."""
         stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
-        return (self.youngs, self.poisson) + stiffening
+        return (ENERGY_RULES, self.poisson) + stiffening
 
     def for_body(self, body):
         """These inputs with the material of the PreparedBody (its painted stiffness, if any)."""
@@ -427,7 +431,15 @@ def cached_energy(energy, body):
     """The body's energy cubature for EnergyInputs `energy` if it is in memory, else None."""
     parent = energy_parent(body)
     potential = stage_cache.from_memory(energy.key(parent), parent)
-    return potential if potential is not None and _fits_body(body)(potential) else None
+    if potential is None or not _fits_body(body)(potential):
+        return None
+    return _at_modulus(potential, energy, body)
+
+
+def _at_modulus(potential, energy, body):
+    """The cached cubature `potential` with the body's material at the inputs' Young's modulus."""
+    return preparation.energy_at(potential, body, energy.kind, energy.youngs, energy.poisson,
+                                 energy.fung_stiffening)
 
 
 def energy_stage(energy, body, job, start=0.0, end=1.0, cached_only=False):
@@ -443,11 +455,12 @@ def energy_stage(energy, body, job, start=0.0, end=1.0, cached_only=False):
         job.step(start, f"{title}: RS coordinates of the modes")
         stage_cache.stats["energy"] += 1
         return preparation.energy_potential(
-            body, energy.material,
+            body, energy.kind, energy.youngs, energy.poisson, energy.fung_stiffening,
             progress=lambda f, message: job.step(start + (end - start) * f, f"{title}: {message}"))
 
-    return stage_cache.get_or_compute(energy, "energy", energy.key(parent), parent, compute, job,
-                                      _fits_body(body))
+    potential = stage_cache.get_or_compute(energy, "energy", energy.key(parent), parent, compute,
+                                           job, _fits_body(body))
+    return _at_modulus(potential, energy, body)
 
 
 def prepare(inputs, job):

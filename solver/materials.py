@@ -325,6 +325,12 @@ class ReducedPotential(PotentialAccessors):
         bit for bit like the saved one (the same arrays, the same arithmetic)."""
         return cls(material, arrays["strain_modes"], arrays["weights"], tets=arrays.get("tets"))
 
+    def with_material(self, material):
+        """The potential of ``material`` over this quadrature (the same arrays). A cubature
+        trained for a material serves any positive multiple of it: StVK's and Fung's energies
+        are proportional to Young's modulus at a fixed Poisson's ratio and stiffening."""
+        return type(self)(material, self.strain_modes, self.weights, tets=self.tets)
+
     @property
     def is_quadratic(self):
         """True for the linear material: V = 1/2 s^T K s with K = ``rest_hessian``."""
@@ -374,7 +380,9 @@ def prepare_potential(material, modal_rs, volumes, eigenvalues=None, num_poses=2
     What the cubature depends on (a cache key needs all of it): the modes (modal_rs, volumes,
     eigenvalues), the training settings and every parameter of the material. Young's modulus
     only scales StVK and Fung, and each pose's fit is normalised, yet it still changes the
-    rounding, and with it which of two mirror-image tets of equal score a pick takes.
+    rounding, and with it which of two mirror-image tets of equal score a pick takes: train at
+    one modulus (``preparation.energy_potential``: 1 Pa) and move the result to another with
+    ``ReducedPotential.with_material``.
     """
     if isinstance(material, Linear):
         return ReducedPotential.exact(material, modal_rs, volumes), {}

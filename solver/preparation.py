@@ -169,13 +169,26 @@ def reduced_deformer(tet_body, linear_modes, density, settings,
     return deformer
 
 
-def energy_potential(body, material, progress=lambda fraction, message: None):
-    """The energy cubature (``materials.ReducedPotential``) of a StVK or Fung ``material`` on
-    the prepared body, trained as ``ENERGY_TRAINING`` says."""
+def energy_potential(body, kind, youngs, poisson, fung_stiffening=10.0,
+                     progress=lambda fraction, message: None):
+    """The energy cubature (``materials.ReducedPotential``) of a StVK or Fung material of the
+    prepared body at Young's modulus ``youngs`` [Pa] (``body.material``), trained as
+    ``ENERGY_TRAINING`` says on the same material at 1 Pa: both energies are proportional to
+    Young's modulus, so one training serves every modulus (``energy_at`` moves it), bit for bit
+    whatever the modulus it was first asked for."""
+    unit = body.material(kind, 1.0, poisson, fung_stiffening=fung_stiffening)
     potential, _ = materials.prepare_potential(
-        material, body.modal_rs, body.volumes, eigenvalues=body.linear_modes.eigenvalues,
+        unit, body.modal_rs, body.volumes, eigenvalues=body.linear_modes.eigenvalues,
         **ENERGY_TRAINING, progress=progress)
-    return potential
+    return energy_at(potential, body, kind, youngs, poisson, fung_stiffening)
+
+
+def energy_at(potential, body, kind, youngs, poisson, fung_stiffening=10.0):
+    """An energy cubature of the body moved to Young's modulus ``youngs`` [Pa] (the same
+    quadrature, the body's material at that modulus)."""
+    _check_youngs(youngs)
+    return potential.with_material(
+        body.material(kind, youngs, poisson, fung_stiffening=fung_stiffening))
 
 
 def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinned=None,

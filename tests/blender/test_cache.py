@@ -254,6 +254,12 @@ def energy_files(folder):
     return sorted(name for name in os.listdir(folder) if ".energy." in name)
 
 
+def same_quadrature(a, b):
+    """Whether two potentials share the arrays of one cubature in memory (neither trained nor
+    read again)."""
+    return a.tets is b.tets and a.strain_modes is b.strain_modes
+
+
 def simulate_frames(ext, obj):
     """Simulate frames 1..4 through the operator; the potential it used."""
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 4
@@ -288,7 +294,7 @@ def test_a_new_session_loads_the_stvk_energy_cubature_that_prepare_trained(ext, 
     trained = simulate_frames(ext, obj)
     assert stats["energy"] == 1                        # ... so Simulate did not train it
     potential, poses = fresh_poses(ext, obj)
-    assert potential is trained and len(trained.tets) > 0
+    assert same_quadrature(potential, trained) and len(trained.tets) > 0
     bpy.ops.wm.save_mainfile()
 
     out = tmp_path / "child.npz"
@@ -320,7 +326,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     assert ext.bridge.bodies.energy_ready(obj) is True
     assert ext.panels.simulate.energy_label(obj) == "Energy cubature: cached with the body"
     obj.rs_elastic.fung_stiffening = 25.0               # StVK does not read it: reused
-    assert simulate_frames(ext, obj) is stvk and stats["energy"] == 1
+    assert same_quadrature(simulate_frames(ext, obj), stvk) and stats["energy"] == 1
     obj.rs_elastic.material_model = 'FUNG'              # another material: a second file
     fung = simulate_frames(ext, obj)
     assert stats["energy"] == 2 and len(energy_files(folder)) == 2
@@ -342,6 +348,39 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     obj.rs_elastic.density *= 2
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["energy"] == 4 and len(energy_files(folder)) == 1
+
+
+def test_a_change_of_youngs_modulus_reuses_the_energy_cubature(ext, tmp_path):
+    """The energy cubature is trained at 1 Pa: a Fung body given another Young's modulus
+    trains nothing (in this session, nor in a new one reading the files), and simulates with
+    its material at the new modulus: the cubature's energy is the exact all-tet energy of
+    that material within the fit."""
+    obj = make_bar()
+    settings = obj.rs_elastic
+    settings.edge_length, settings.num_modes, settings.material_model = 0.08, 5, 'FUNG'
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    stats, folder = ext.bridge.stage_cache.stats, ext.bridge.stage_cache.cache_dirs()[0]
+    trained = simulate_frames(ext, obj)
+    assert stats["energy"] == 1 and len(energy_files(folder)) == 1
+    youngs = settings.youngs_modulus
+    for factor, new_session in ((3.0, False), (0.5, True)):
+        settings.youngs_modulus = factor * youngs
+        if new_session:
+            ext.bridge.stage_cache._MEMORY.clear()
+            ext.bridge.prepared._BODIES.clear()
+        assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+        potential = simulate_frames(ext, obj)
+        assert stats["energy"] == 1 and len(energy_files(folder)) == 1
+        np.testing.assert_array_equal(potential.tets, trained.tets)
+        np.testing.assert_array_equal(potential.weights, trained.weights)
+        body = ext.bridge.prepared.for_object(obj)
+        exact = ext.solver.materials.ReducedPotential.exact(
+            body.material('FUNG', settings.youngs_modulus, settings.poisson_ratio,
+                          settings.fung_stiffening), body.modal_rs, body.volumes)
+        z = 0.3 / np.sqrt(body.linear_modes.eigenvalues)
+        np.testing.assert_allclose(potential.energy(z), exact.energy(z), rtol=1e-2)
+        np.testing.assert_allclose(potential.energy(z), factor * trained.energy(z), rtol=1e-6)
+    assert stats["energy_cache_hits"] == 1                        # the new session read it
 
 
 def _garbage(path, arrays):

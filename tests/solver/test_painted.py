@@ -289,10 +289,11 @@ def test_the_energy_cubature_is_trained_on_the_painted_parameters(painted_bar):
     body, _ = painted_bar
     material = body.material("STVK", YOUNGS, NU)
     uniform = materials.make_material("STVK", *fem.lame_parameters(YOUNGS, NU))
-    trained = preparation.energy_potential(body, material)
-    elsewhere = preparation.energy_potential(body, uniform)
-    elsewhere = materials.ReducedPotential(material, elsewhere.strain_modes, elsewhere.weights,
-                                           elsewhere.tets)
+    trained = preparation.energy_potential(body, "STVK", YOUNGS, NU)
+    elsewhere, _ = materials.prepare_potential(uniform, body.modal_rs, body.volumes,
+                                               eigenvalues=body.linear_modes.eigenvalues,
+                                               **preparation.ENERGY_TRAINING)
+    elsewhere = elsewhere.with_material(material)
     exact = materials.ReducedPotential.exact(material, body.modal_rs, body.volumes)
     scale = 1.0 / np.sqrt(body.linear_modes.eigenvalues)          # a mode's natural amplitude
     poses = np.random.default_rng(5).normal(size=(6, len(scale))) * scale * 0.05
@@ -303,6 +304,28 @@ def test_the_energy_cubature_is_trained_on_the_painted_parameters(painted_bar):
     print(f"painted StVK cubature against the exact painted energy: {error(trained):.1e} "
           f"(trained on the uniform material: {error(elsewhere):.1e})")
     assert error(trained) < 1.5e-4 < error(elsewhere)
+
+
+@pytest.mark.parametrize("kind", ["STVK", "FUNG"])
+def test_one_energy_cubature_serves_every_youngs_modulus(painted_bar, kind):
+    """The energy cubature is trained at 1 Pa (preparation.energy_potential): asked for two
+    moduli it picks the same tets and weights bit for bit, and its energy, force and Hessian at
+    E are E times those at 1 Pa and those of the exact painted material at E within its fit."""
+    body, _ = painted_bar
+    low = preparation.energy_potential(body, kind, YOUNGS, NU, fung_stiffening=8.0)
+    high = preparation.energy_potential(body, kind, 7.0 * YOUNGS, NU, fung_stiffening=8.0)
+    np.testing.assert_array_equal(low.tets, high.tets)
+    np.testing.assert_array_equal(low.weights, high.weights)
+    scale = 1.0 / np.sqrt(body.linear_modes.eigenvalues)
+    poses = np.random.default_rng(8).normal(size=(4, len(scale))) * scale * 0.05
+    exact = materials.ReducedPotential.exact(body.material(kind, 7.0 * YOUNGS, NU, 8.0),
+                                             body.modal_rs, body.volumes)
+    for z in poses:
+        for at_low, at_high in zip(low.evaluate(z), high.evaluate(z)):
+            np.testing.assert_allclose(at_high, 7.0 * at_low, rtol=1e-10)
+        assert abs(high.energy(z) / exact.energy(z) - 1.0) < 1e-3
+    with pytest.raises(ValueError, match="Young's modulus"):
+        preparation.energy_at(low, body, kind, 0.0, NU)
 
 
 # --- the simulation -----------------------------------------------------------------------------
