@@ -243,8 +243,11 @@ class RSElasticSettings(bpy.types.PropertyGroup):
         description="Re-solve whenever a handle's Empty or its keyframes change and show the "
                     "pose at the current frame as the preview (never the bake; Solve and Bake "
                     "writes that)")
-    iterations: IntProperty(name="Iterations", default=20, min=1, soft_max=200,
-                            description="Largest number of solver iterations")
+    iterations: IntProperty(
+        name="Iterations", default=0, min=0, soft_max=200,
+        description="Largest number of solver iterations: Gauss-Newton steps of the motion, or "
+                    "rounds with Optimize Material; 0 = automatic (until converged, up to 200 "
+                    "steps, 50 where handles are keyed on many frames, or 20 rounds)")
     bake_to: EnumProperty(
         name="Bake To", default='KEYS',
         items=[('KEYS', "Shape Keys", "One shape key per frame, inside the .blend (short shots)"),

@@ -17,7 +17,7 @@ class SpaceTimeJob:
     frames: list                 # scene frames, ascending
     problem: spacetime.SpaceTimeProblem
     optimise_material: bool
-    iterations: int
+    iterations: int              # most solver steps (None: the solver's own limits)
     body: PreparedBody
     rest: np.ndarray             # (n, 3) base vertices
     track_slices: list           # per handle track: (handle index in settings, slice of constraints)
@@ -113,7 +113,7 @@ def gather(obj, blender_scene):
     handle_index = {h.empty.name: i for i, h in enumerate(obj.rs_elastic.handles)
                     if h.empty is not None}
     return SpaceTimeJob(obj.name, frames, setup.problem, settings.optimize_material,
-                        obj.rs_elastic.iterations, body, rest,
+                        obj.rs_elastic.iterations or None, body, rest,
                         [(handle_index[t.name], rows) for t, rows in zip(tracks, setup.track_slices)],
                         [track.name for track in tracks],
                         problems.handle_stretch_demands(body, setup.rest_centroids, tracks),
@@ -151,8 +151,11 @@ def _rig_tracks(obj, blender_scene, body, frames, tracks, warnings):
 
 def solve(job_inputs, job):
     """Worker thread: run the solver and turn its result into render-vertex poses."""
+    limit = spacetime.step_limit(job_inputs.problem, job_inputs.iterations,
+                                 job_inputs.optimise_material)
+
     def progress(iteration, objective):
-        job.step(min(0.95, iteration / max(job_inputs.iterations, 1)),
+        job.step(min(0.95, iteration / max(limit, 1)),
                  f"iteration {iteration}, objective {objective:.4g}")
 
     try:

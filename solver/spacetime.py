@@ -126,6 +126,7 @@ HANDLE_TOLERANCE = 1e-9    # ... stop once every handle is this close (relative 
 HANDLE_MET = 1e-4          # ... and report the handles met (converged) within this of their extent
 GN_STEPS = 50             # default GN steps per Z solve (banded system)
 ELIMINATED_STEPS = 200    # ... with the handles' frames eliminated (``_Elimination``)
+MATERIAL_ROUNDS = 20      # default outer rounds of a solve that optimises the material
 ELIMINATE_LIMIT = 240      # most unknowns on the handles' frames for ``_Elimination``
 REACH_FORCING = 30.0       # E_f rise that, with the handles not closing in, means "out of reach"
 
@@ -885,6 +886,16 @@ def _step_limit(state, iterations, elimination=False):
     return GN_STEPS if not elimination else ELIMINATED_STEPS
 
 
+def step_limit(problem, iterations=None, optimise_material=False):
+    """The most steps ``solve`` records for ``iterations`` (None: its defaults): Gauss-Newton
+    steps of the motion, or material rounds with ``optimise_material`` (for progress bars)."""
+    if iterations is not None:
+        return int(iterations)
+    if optimise_material:
+        return MATERIAL_ROUNDS
+    return GN_STEPS if not _elimination_applies(problem) else ELIMINATED_STEPS
+
+
 def material_bounds(eigenvalues, damping, freedom):
     """(lower (2, r), upper (2, r)) of (lambda, d) around prepared values (r,) for factor f.
 
@@ -1074,7 +1085,7 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
 
     iterations: GN steps per Z solve (default ``GN_STEPS``, ``ELIMINATED_STEPS`` where the
     handles' frames are eliminated, module doc) without material optimisation; outer
-    block-descent rounds (default 20) with it, each round = up to ``gn_iterations`` GN steps,
+    block-descent rounds (default ``MATERIAL_ROUNDS``) with it, each round = up to ``gn_iterations`` GN steps,
     the (lambda, d) fit and, for a rectangular S only (module doc), up to
     ``sampling_iterations`` L-BFGS-B iterations on S with Z carried; after the last round Z is
     solved again (default step limit) for the final material, so no control force is left
@@ -1122,7 +1133,7 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
         out_of_reach.append(reach.give_up(state, callback).reason)
     _optimise_z(state, gn_iterations, tolerance, 0, callback, should_cancel)
     _choose_weights(state)
-    rounds = 20 if iterations is None else int(iterations)
+    rounds = MATERIAL_ROUNDS if iterations is None else int(iterations)
     rounds_done, change = False, np.inf
     for outer in range(1, 1 + rounds):
         before = state.value

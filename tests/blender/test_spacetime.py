@@ -65,6 +65,28 @@ def test_solve_puts_the_handle_on_its_empty_on_every_keyed_frame(ext):
     assert fingerprint(obj) == user
 
 
+def test_iterations_zero_runs_the_solver_to_its_own_limits_and_a_number_caps_it(ext):
+    """The Iterations setting defaults to 0 (automatic): the operator's solve is then the
+    solver's with its own step limits (the same objective after every step); a number caps the
+    Gauss-Newton steps, and a solve cut short says so."""
+    obj, empty, tip = prepared_bar_with_tip_handle({20: (3.0, 3.5, 2.5), 40: (2.0, 3.0, 3.0)})
+    assert obj.rs_elastic.iterations == 0
+    inputs = ext.bridge.spacetime_inputs
+    job = inputs.gather(obj, bpy.context.scene)
+    assert job.iterations is None
+    reference = ext.solver.spacetime.solve(job.problem)
+    assert reference.converged and len(reference.history) > 4, reference.reason
+    assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
+    assert inputs.LAST_STATUS[obj.name] == (True, "Solve converged")
+    history = [item.value for item in obj.rs_elastic.solve_history]
+    np.testing.assert_allclose(history, [value for _, _, value in reference.history], rtol=1e-6)
+    obj.rs_elastic.iterations = 2
+    assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
+    assert inputs.LAST_STATUS[obj.name] == (
+        False, "Solve did not converge: Gauss-Newton did not converge in 2 steps")
+    assert len(obj.rs_elastic.solve_history) < len(history)
+
+
 def test_material_optimisation_bakes_and_lowers_nothing_it_should_not(ext):
     obj, empty, tip = prepared_bar_with_tip_handle({15: (3.0, 3.5, 2.5), 35: (2.0, 3.0, 3.0)})
     obj.rs_elastic.optimize_material = True
