@@ -4,7 +4,14 @@ synchronously (scripts and background mode, where modal operators and timers nev
 The work is a plain function `work(job)` that must not touch bpy: it reads arrays prepared on the
 main thread, calls `job.step(fraction, message)` between stages (which raises `Cancelled` once Esc
 was pressed), and returns a result that the operator applies to Blender on the main thread.
+
+Reading the scene can itself take long (a take read frame by frame). Such an operator's
+`make_work` is a generator: it yields (fraction, message) between pieces of main-thread reading
+and returns `work`. In the UI its pieces run on the timer's ticks, `READ_BUDGET` seconds at a
+time, so the window stays responsive, shows the progress and hears Esc, which closes the
+generator (its `finally` puts the scene back); in background mode it runs to its end at once.
 """
+import inspect
 import threading
 import time
 
@@ -12,6 +19,8 @@ import bpy
 
 POLL = 0.1              # s between the modal operator's timer ticks while a job runs
 CANCEL_POLL = 0.01      # s between ticks once Esc was pressed: the operator ends right after the work
+READ_POLL = 0.01        # s between ticks while a generator reads the scene on the main thread
+READ_BUDGET = 0.05      # s of that reading per tick (the window handles its events in between)
 RUNNING = {}            # {object name: Job} of the modal jobs running now (the panels' progress bars)
 
 
@@ -20,8 +29,12 @@ class Cancelled(Exception):
 
 
 class Job:
+    """A piece of work (`work(job)`), or a generator reading the scene on the main thread that
+    yields (fraction, message) and returns the work (module docstring)."""
+
     def __init__(self, work, idname="", object_name=""):
-        self._work = work
+        self.reader = work if inspect.isgenerator(work) else None
+        self._work = None if self.reader is not None else work
         self.idname, self.object_name = idname, object_name
         self._cancel = threading.Event()
         self._thread = None
@@ -49,8 +62,23 @@ class Job:
         return self._cancel.is_set()
 
     # --- called by the operator ----------------------------------------------------------------------
+    def read(self, seconds=None):
+        """Main thread: advance the reader for about `seconds` (None: to its end); True once it
+        has returned the work. Its exceptions propagate."""
+        end = None if seconds is None else time.monotonic() + seconds
+        try:
+            while True:
+                self.fraction, self.message = next(self.reader)
+                if end is not None and time.monotonic() >= end:
+                    return False
+        except StopIteration as stop:
+            self._work, self.reader = stop.value, None
+            return True
+
     def run_here(self):
-        """Run synchronously; exceptions propagate."""
+        """Run synchronously (the reading too); exceptions propagate."""
+        if self.reader is not None:
+            self.read()
         self.result = self._work(self)
         return self.result
 
@@ -65,7 +93,11 @@ class Job:
             self.error = exc
 
     def cancel(self):
+        """Stop the work at its next check; a reading stops now, its generator closed (main
+        thread)."""
         self._cancel.set()
+        if self.reader is not None:
+            self.reader.close()
 
     @property
     def done(self):
@@ -104,8 +136,9 @@ class JobOperator:
     """Mixin for an operator whose work may take long.
 
     Subclasses implement `make_work(context)` (main thread: read and validate the scene, raise
-    `InputError` for bad input, return `work(job)`), and `apply(context, result, job)` (main thread:
-    write the result into Blender, return the operator's return set).
+    `InputError` for bad input, return `work(job)`; or a generator that reads step by step, see
+    the module docstring), and `apply(context, result, job)` (main thread: write the result into
+    Blender, return the operator's return set).
     """
 
     _job = None
@@ -163,12 +196,14 @@ class JobOperator:
         return {'RUNNING_MODAL'}
 
     def _run_modal(self, context, job):
-        """Start `job` on its thread, with the timer that polls it, the cursor's progress and
-        the panels' progress bar (the modal handler is added once, by invoke)."""
+        """Start `job` (its reading on the timer's ticks, else its thread), with the timer that
+        polls it, the cursor's progress and the panels' progress bar (the modal handler is
+        added once, by invoke)."""
         self._job = job
-        job.start()
+        if job.reader is None:
+            job.start()
         wm = context.window_manager
-        self._set_timer(context, POLL)
+        self._set_timer(context, POLL if job.reader is None else READ_POLL)
         wm.progress_begin(0, 100)
         RUNNING[job.object_name] = job
 
@@ -212,6 +247,8 @@ class JobOperator:
         if event.type == 'ESC' and event.value == 'PRESS' and not job.is_cancelled():
             job.cancel()            # the work stops at its next check (a substep, a stage)
             self._set_timer(context, CANCEL_POLL)
+        if job.reader is not None:          # still reading the scene (closed by a cancel)
+            return self._read(context, event, job)
         if event.type != 'TIMER' and not job.done:
             return {'RUNNING_MODAL'}
         if not job.done:
@@ -223,3 +260,21 @@ class JobOperator:
         if job.is_cancelled():
             return self._fail(Cancelled())
         return self._finish(context, job)
+
+    def _read(self, context, event, job):
+        """A tick of the main-thread reading: READ_BUDGET of it, then the work on its thread."""
+        if job.is_cancelled():
+            self._cleanup(context)
+            return self._fail(Cancelled())
+        if event.type != 'TIMER':
+            return {'RUNNING_MODAL'}
+        try:
+            finished = job.read(READ_BUDGET)
+        except Exception as exc:
+            self._cleanup(context)
+            return self._fail(exc)
+        if finished:
+            job.start()
+            self._set_timer(context, POLL)
+        self._show_progress(context, job)
+        return {'RUNNING_MODAL'}

@@ -9,7 +9,8 @@ editor reads them as it reads a kept bake. Reading the body itself, the extensio
 (its keys, its Mesh Cache modifier) and preview are muted: they are output, not input.
 
 Take from Animation and Fit Material can take seconds: each reads the scene on the main thread
-(``gather_take``, ``gather_fit``), works on a worker thread with progress and Esc (``jobs``:
+(``gather_take`` frame by frame, a generator that the UI runs on timer ticks with progress and
+Esc; ``gather_fit``), works on a worker thread with progress and Esc (``jobs``:
 ``take_residuals``, ``fit_work``) and writes the result on the main thread (``store_take``,
 ``keep_fitted``); in background mode the same runs synchronously.
 
@@ -19,6 +20,7 @@ dict of ``solver.take.FittedMaterial``), so it survives save, reopen and undo.
 import contextlib
 import dataclasses
 
+import bpy
 import numpy as np
 import scipy.spatial
 
@@ -95,23 +97,30 @@ def _evaluated_positions(source, depsgraph):
     return co.reshape(-1, 3)
 
 
-def read_motion(context, obj, source, frames):
-    """(F, n, 3) the source's evaluated vertex positions [its object space] on ``frames``,
-    checked against the body's vertices; the scene's current frame is put back."""
-    blender_scene, current = context.scene, context.scene.frame_current
+READ_SHARE = 0.5     # of Take from Animation's progress bar: reading the frames (then the fit)
+
+
+def read_motion(blender_scene, obj, source, frames):
+    """A generator reading (F, n, 3) the source's evaluated vertex positions [its object space]
+    on ``frames``, one frame per step: it yields (fraction, message) after each and returns the
+    positions, checked against the body's vertices. The scene's current frame is put back when
+    it ends, fails or is closed (``jobs``: Esc). Main thread."""
+    current = blender_scene.frame_current
     muting = own_output_muted(obj) if source is obj else contextlib.nullcontext()
     poses = []
     try:
         with muting:
-            for frame in frames:
+            for index, frame in enumerate(frames):
                 blender_scene.frame_set(frame)
-                pose = _evaluated_positions(source, context.evaluated_depsgraph_get())
+                pose = _evaluated_positions(source, bpy.context.evaluated_depsgraph_get())
                 if not poses:
                     require_same_vertices(obj, source, pose)
                 elif len(pose) != len(poses[0]):
                     raise InputError(f"'{source.name}' changes its vertex count on frame "
                                      f"{frame}: a take needs the same vertices on every frame")
                 poses.append(pose)
+                yield (READ_SHARE * (index + 1) / len(frames),
+                       f"reading frame {index + 1} of {len(frames)}")
     finally:
         blender_scene.frame_set(current)
     poses = np.array(poses)
@@ -132,14 +141,18 @@ class TakeInputs:
 
 
 def gather_take(context, obj):
-    """Main thread: validate the body and read its take source's motion over the scene's range.
-    Raises InputError."""
+    """Main thread: validate the body (InputError), then return a generator that reads its take
+    source's motion over the scene's range frame by frame (``read_motion``) and returns the
+    ``TakeInputs``."""
     scene.require_body(obj)
     bake.require_writable(obj, "store a take")
     body = prepared.require(obj)
     frames = scene_frames(context.scene)
-    source = take_source(obj)
-    poses = read_motion(context, obj, source, frames)
+    return _read_take(context.scene, obj, take_source(obj), frames, body)
+
+
+def _read_take(blender_scene, obj, source, frames, body):
+    poses = yield from read_motion(blender_scene, obj, source, frames)
     return TakeInputs(obj.name, source.name, frames, poses, body, scene.base_vertices(obj))
 
 
@@ -153,7 +166,7 @@ def _frame_progress(job, count, start, end, what):
 
 def take_residuals(inputs, job):
     """Worker thread: (F,) [m] how far the modes' fit misses each of the take's frames."""
-    step = _frame_progress(job, len(inputs.frames), 0.0, 0.95, "fitting the modes to")
+    step = _frame_progress(job, len(inputs.frames), READ_SHARE, 0.95, "fitting the modes to")
     _, residuals = solver_take.take_to_modal(inputs.body, inputs.rest, inputs.poses, step=step)
     return residuals
 

@@ -14,7 +14,11 @@ class RS_ELASTIC_OT_take_from_animation(jobs.JobOperator, bpy.types.Operator):
 
     def make_work(self, context):
         obj = scene.require_mesh_object(context.active_object)
-        inputs = take.gather_take(context, obj)
+        return self._work_after(take.gather_take(context, obj))
+
+    def _work_after(self, reading):
+        """The reading of the frames (a generator, ``jobs``), then the fit's work."""
+        inputs = yield from reading
         self._inputs = inputs
         return lambda job: take.take_residuals(inputs, job)
 

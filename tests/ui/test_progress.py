@@ -292,3 +292,59 @@ def _solve_and_cancel(gui):
     bars = gui.run(RECORDER + "result = panel_items(['RS_ELASTIC_PT_spacetime'])"
                    "['RS_ELASTIC_PT_spacetime']")
     assert not [item for item in bars if item[0] == "progress"], bars
+
+
+# A take source with the body's vertices, over a long range, in a scene that takes 20 ms per
+# frame to evaluate (a frame-change handler sleeps): reading all its frames takes about 8 s.
+SLOW_TAKE = """
+obj = bpy.data.objects["Bar"]
+source = obj.copy()
+source.data = obj.data.copy()
+source.name = "Source"
+bpy.context.scene.collection.objects.link(source)
+obj.rs_elastic.take_source = source
+bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 400
+bpy.context.scene.frame_set(7)
+READ = []
+def slow_frame(scene, depsgraph=None):
+    time.sleep(0.02)
+    READ.append(scene.frame_current)
+bpy.app.handlers.frame_change_post.append(slow_frame)
+"""
+RESTORE_FRAMES = """
+bpy.app.handlers.frame_change_post[:] = [f for f in bpy.app.handlers.frame_change_post
+                                         if f.__name__ != "slow_frame"]
+"""
+
+
+def test_take_from_animation_reads_frame_by_frame_with_a_bar_and_esc_puts_the_frame_back(gui):
+    """The frames are read on the main thread a piece per timer tick: the operator returns at
+    once, the Take panel's bar moves while the frames are read, and Esc stops the reading with
+    the scene on its frame again and no take."""
+    gui.run(QUICK_BAR, timeout=300)
+    gui.run(SLOW_TAKE)
+    try:
+        before = body_state(gui)
+        gui.run("watch_panels()")
+        assert gui.run("with override():\n    result = sorted("
+                       "bpy.ops.rs_elastic.take_from_animation('INVOKE_DEFAULT'))") == \
+            ["RUNNING_MODAL"]
+        assert gui.run("result = len(READ)") < 400      # invoke did not read them all
+        bar = _wait_for_progress(gui, "rs_elastic.take_from_animation", "RS_ELASTIC_PT_take",
+                                 0.05)
+        _check_bar(*bar)
+        assert "reading frame" in bar[2][0][1], bar
+        gui.key("Escape")
+        _wait_until_ended(gui, "rs_elastic.take_from_animation")
+        read, frame = gui.run("result = [len(READ), bpy.context.scene.frame_current]")
+        print(f"\nTake from Animation: Esc after {read} of 400 frames read")
+        assert read < 400 and frame == 7
+        reports = gui.run("result = reports()")
+        assert any("Take from Animation: cancelled, nothing was changed" in line
+                   for line in reports), reports
+        assert gui.run("result = bpy.data.objects['Bar'].rs_elastic.use_take") is False
+        after = body_state(gui)
+        assert {k: v for k, v in after.items() if k != "cache"} == \
+            {k: v for k, v in before.items() if k != "cache"}
+    finally:
+        gui.run(RESTORE_FRAMES)
