@@ -329,7 +329,7 @@ class ReducedPotential(PotentialAccessors):
         """The potential of ``material`` over this quadrature (the same arrays). A cubature
         trained for a material serves any positive multiple of it: StVK's and Fung's energies
         are proportional to Young's modulus at a fixed Poisson's ratio and stiffening."""
-        return type(self)(material, self.strain_modes, self.weights, tets=self.tets)
+        return self.from_arrays(self.to_arrays(), material)
 
     @property
     def is_quadratic(self):
