@@ -877,23 +877,24 @@ def _optimise_z(state, iterations, tolerance, outer, callback, should_cancel):
 
 
 def _step_limit(state, iterations, elimination=False):
-    """``iterations``, or by default ``GN_STEPS`` (``ELIMINATED_STEPS`` where the handles'
-    frames are eliminated, ``_elimination``: such steps cost no more with the frame count)."""
-    if iterations is not None:
-        return int(iterations)
-    if elimination is False:
-        elimination = _elimination_applies(state.problem)
-    return GN_STEPS if not elimination else ELIMINATED_STEPS
+    """``step_limit`` of a Z solve; elimination: its ``_Elimination`` or None (False: whether
+    the problem allows one)."""
+    eliminated = None if elimination is False else elimination is not None
+    return step_limit(state.problem, iterations, eliminated=eliminated)
 
 
-def step_limit(problem, iterations=None, optimise_material=False):
+def step_limit(problem, iterations=None, optimise_material=False, eliminated=None):
     """The most steps ``solve`` records for ``iterations`` (None: its defaults): Gauss-Newton
-    steps of the motion, or material rounds with ``optimise_material`` (for progress bars)."""
+    steps of the motion, ``GN_STEPS`` or ``ELIMINATED_STEPS`` where the handles' frames are
+    eliminated (``eliminated``; None: where ``_elimination`` applies; such steps cost no more
+    with the frame count), or ``MATERIAL_ROUNDS`` with ``optimise_material``."""
     if iterations is not None:
         return int(iterations)
     if optimise_material:
         return MATERIAL_ROUNDS
-    return GN_STEPS if not _elimination_applies(problem) else ELIMINATED_STEPS
+    if eliminated is None:
+        eliminated = _elimination_applies(problem)
+    return ELIMINATED_STEPS if eliminated else GN_STEPS
 
 
 def material_bounds(eigenvalues, damping, freedom):
@@ -1085,11 +1086,11 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
 
     iterations: GN steps per Z solve (default ``GN_STEPS``, ``ELIMINATED_STEPS`` where the
     handles' frames are eliminated, module doc) without material optimisation; outer
-    block-descent rounds (default ``MATERIAL_ROUNDS``) with it, each round = up to ``gn_iterations`` GN steps,
-    the (lambda, d) fit and, for a rectangular S only (module doc), up to
-    ``sampling_iterations`` L-BFGS-B iterations on S with Z carried; after the last round Z is
-    solved again (default step limit) for the final material, so no control force is left
-    that the material change made unnecessary. tolerance: relative decrease of J (and relative
+    block-descent rounds (default ``MATERIAL_ROUNDS``) with it, each round = up to
+    ``gn_iterations`` GN steps, the (lambda, d) fit and, for a rectangular S only (module
+    doc), up to ``sampling_iterations`` L-BFGS-B iterations on S with Z carried; after the
+    last round Z is solved again (default step limit) for the final material, so no control
+    force is left that the material change made unnecessary. tolerance: relative decrease of J (and relative
     step size) under which a GN run stops; round_tolerance: relative decrease of J over a round
     under which the material descent has converged. initial: (F, r) starting Z (default zeros;
     start frames are overwritten by start_state). continuation: run the penalty continuation
