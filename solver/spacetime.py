@@ -1092,9 +1092,9 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
     last round Z is solved again (default step limit) for the final material, so no control
     force is left that the material change made unnecessary. tolerance: relative decrease of
     J (and relative step size) under which a GN run stops; round_tolerance: relative decrease
-    of J over a round under which the material descent has converged. initial: (F, r) starting Z (default zeros;
-    start frames are overwritten by start_state). continuation: run the penalty continuation
-    for stiff handles first (module doc). callback(iteration, J) after every recorded step;
+    of J over a round under which the material descent has converged. initial: (F, r)
+    starting Z (default zeros; start frames are overwritten by start_state). continuation:
+    run the penalty continuation for stiff handles first (module doc). callback(iteration, J) after every recorded step;
     should_cancel() -> bool polled between steps, raising ``SolveCancelled``. exact_handles
     (without material optimisation only): after the penalty solve, meet the handles by the
     method of multipliers (``_meet_handles``); the result then minimises E_f + E_k subject to
