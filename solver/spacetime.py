@@ -1084,21 +1084,21 @@ def solve(problem, optimise_material=False, iterations=None, gn_iterations=5,
           exact_handles=False):
     """Minimise J over Z (and, with ``optimise_material``, over Lambda, D and S).
 
-    iterations: GN steps per Z solve (default ``GN_STEPS``, ``ELIMINATED_STEPS`` where the
-    handles' frames are eliminated, module doc) without material optimisation; outer
-    block-descent rounds (default ``MATERIAL_ROUNDS``) with it, each round = up to
-    ``gn_iterations`` GN steps, the (lambda, d) fit and, for a rectangular S only (module
-    doc), up to ``sampling_iterations`` L-BFGS-B iterations on S with Z carried; after the
-    last round Z is solved again (default step limit) for the final material, so no control
-    force is left that the material change made unnecessary. tolerance: relative decrease of
-    J (and relative step size) under which a GN run stops; round_tolerance: relative decrease
-    of J over a round under which the material descent has converged. initial: (F, r)
-    starting Z (default zeros; start frames are overwritten by start_state). continuation:
-    run the penalty continuation for stiff handles first (module doc). callback(iteration, J) after every recorded step;
-    should_cancel() -> bool polled between steps, raising ``SolveCancelled``. exact_handles
-    (without material optimisation only): after the penalty solve, meet the handles by the
-    method of multipliers (``_meet_handles``); the result then minimises E_f + E_k subject to
-    the handles rather than J, so its ``objective`` (J) may be above the history's last value.
+    iterations: GN steps per Z solve (default ``GN_STEPS``, ``ELIMINATED_STEPS`` where the handles'
+    frames are eliminated, module doc) without material optimisation; outer block-descent rounds
+    (default ``MATERIAL_ROUNDS``) with it, each round = up to ``gn_iterations`` GN steps, the
+    (lambda, d) fit and, for a rectangular S only (module doc), up to ``sampling_iterations``
+    L-BFGS-B iterations on S with Z carried; after the last round Z is solved again (default step
+    limit) for the final material, so no control force is left that the material change made
+    unnecessary. tolerance: relative decrease of J (and relative step size) under which a GN run
+    stops; round_tolerance: relative decrease of J over a round under which the material descent
+    has converged. initial: (F, r) starting Z (default zeros; start frames are overwritten by
+    start_state). continuation: run the penalty continuation for stiff handles first (module doc).
+    callback(iteration, J) after every recorded step; should_cancel() -> bool polled between steps,
+    raising ``SolveCancelled``. exact_handles (without material optimisation only): after the
+    penalty solve, meet the handles by the method of multipliers (``_meet_handles``); the result
+    then minimises E_f + E_k subject to the handles rather than J, so its ``objective`` (J) may be
+    above the history's last value.
     Returns ``SpaceTimeResult`` (``converged`` and ``reason`` say whether each stage converged).
     """
     Z = np.zeros((problem.frames, problem.num_modes)) if initial is None else \
