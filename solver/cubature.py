@@ -25,7 +25,9 @@ Choices written down here:
   candidates, so the n x k picked columns are read twice per block, not several times per pick.
 - Candidates: each block is a fresh random subset of the unpicked elements, scored by the
   cosine between their column and the residual (only positive correlations can help with
-  w >= 0); the best few of them are kept for the block's picks.
+  w >= 0); the best few of them are kept for the block's picks. With a ``screen`` (the
+  reduced RS cubature: ``reduced.RemainderScreen``) the subset is scored without forming its
+  columns, and only those best few are formed.
 - Picks whose NNLS weight ends at 0 are dropped from the returned cubature.
 """
 
@@ -116,7 +118,7 @@ DEPENDENT = 1e-6   # a column whose part outside the picked ones is below this i
 
 
 def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=None,
-                num_columns=None, picks_per_block=1, progress=None):
+                num_columns=None, picks_per_block=1, progress=None, screen=None):
     """Greedy sparse non-negative fit target ~ A[:, S] w, w >= 0 (An et al. 2008).
 
     columns: the matrix A (n, K), or a callable ``columns(indices) -> (n, len(indices))`` that
@@ -130,6 +132,10 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
       random block is drawn. Columns are the expensive part when they are computed on demand,
       so a large fit (hundreds of picks) takes several per block; 1 draws a fresh block for
       every pick.
+    screen: optional callable(residual (n,), indices (s,)) -> (s,) the cosines of those
+      columns with the residual, computed without forming them (``reduced.RemainderScreen``):
+      then only the SCREEN x picks_per_block best-scored candidates of a block are formed
+      (their exact scores, computed from the formed columns, decide the picks).
 
     Each pick takes the candidate with the largest cosine to the residual (after the block's
     first pick, among the ``SCREEN`` x picks_per_block best of its first scoring, re-scored
@@ -165,6 +171,10 @@ def greedy_nnls(columns, target, tol=1e-3, max_picks=200, candidates=None, rng=N
         if candidates is not None and len(pool) > candidates:
             pool = rng.choice(pool, size=int(candidates), replace=False)
         whole = len(pool) == available.sum()
+        shortlist = SCREEN * max(int(picks_per_block), 1)
+        if screen is not None and len(pool) > shortlist:     # form only the best-scored
+            scores = np.nan_to_num(np.asarray(screen(fit.residual, pool)), nan=-np.inf)
+            pool = pool[np.sort(np.argpartition(-scores, shortlist - 1)[:shortlist])]
         block = np.asarray(get(pool), dtype=np.float64)               # (n, |pool|)
         if _picks_from_block(fit, block, pool, available, picks_per_block, tol, history):
             misses = 0

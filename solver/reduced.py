@@ -435,7 +435,7 @@ class ReducedProjection:
         # inverse, then one tall product on several threads (2.5x faster than cho_solve on B^T).
         inverse = scipy.linalg.cho_solve(self.gram_factor, np.eye(len(gram)))
         self.solved_basis = threads.matmul(self.basis, 0.5 * (inverse + inverse.T))
-        self._gradients = fem.shape_gradients(self.X, self.T)              # (E, 4, 3)
+        self.shape_gradients = fem.shape_gradients(self.X, self.T)         # (E, 4, 3)
         self._linear_map = None                 # (modal_rs it was made for, A)
 
     @property
@@ -448,7 +448,7 @@ class ReducedProjection:
         r = self.basis_size
         nodes = self.solved_basis.reshape(self.num_nodes, 3 * r)[self.T[tets]]  # (k, 4, 3 rB)
         # (G_e B~)[i, j, :] = sum_a grad_a[j] B~[node a, i, :], as a batched (3 x 4)(4 x 3 rB).
-        GB = np.swapaxes(self._gradients[tets], 1, 2) @ nodes                    # (k, j, (i, r))
+        GB = np.swapaxes(self.shape_gradients[tets], 1, 2) @ nodes               # (k, j, (i, r))
         GB = GB.reshape(len(tets), 3, 3, r).transpose(0, 3, 2, 1)                 # (k, r, i, j)
         P = GB.reshape(len(tets), r, 9) * self.recon.volumes[tets][:, None, None]
         return np.ascontiguousarray(P)
@@ -810,8 +810,11 @@ def _apply_rows(rows, q):
 # ---------------------------------------------------------------------------------------------
 # Reduced RS cubature
 
+CANDIDATES = 1000   # random candidate tets scored per block of cubature picks
+
+
 def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol=2e-3, rng=None,
-                              candidates=400, projection=None, picks_per_block=None,
+                              candidates=None, projection=None, picks_per_block=None,
                               progress=None):
     """Cubature (tets, weights) for reduced RS, SPEC section 4, as ``ReducedRS`` uses it.
 
@@ -824,13 +827,13 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
     X (N, 3), T (E, 4): the tet mesh; modal_rs (E, 9, m); B (3N, rB) the basis; recon: the
     body's ``rs.PoissonReconstruction``; poses: Z (F, m) training modal coordinates (see
     ``cubature.training_poses``); projection: an existing ``ReducedProjection`` for B.
-    Columns are computed only for the ``candidates`` random tets scored at each pick
-    (vectorised over them and all poses). tol: on |residual| / |target| of the normalised fit.
-    picks_per_block: see ``cubature.greedy_nnls``; None takes max(1, max_tets // 16), so a
-    large cubature (hundreds of tets, for a basis that grows with the mode count) does not
-    pay for a fresh block of candidate columns at every pick (measured, 10k-tet bar, 20
-    modes, 288 tets: 16 picks from blocks of 1,000 candidates fit as well as 4 from 400, the
-    columns computed being the larger part of the training).
+    Each block of picks draws ``candidates`` random tets (None: ``CANDIDATES``), scores
+    them without their columns (``RemainderScreen``) and forms the columns of the best
+    few only. tol: on |residual| / |target| of the normalised fit. picks_per_block: see
+    ``cubature.greedy_nnls``; None takes max(1, max_tets // 16), so a large cubature
+    (hundreds of tets, for a basis that grows with the mode count) does not score a fresh
+    block at every pick (measured, 10k-tet bar, 20 modes, 288 tets: 16 picks from blocks of
+    1,000 candidates fit as well as 4 from 400).
     progress(fraction, message): optional, see ``greedy_nnls``.
 
     Returns tets (C,) int64, weights (C,) > 0 and info dict: ``history`` (relative residual per
@@ -842,29 +845,130 @@ def train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, max_tets=150, tol
         projection = ReducedProjection(X, T, B, recon)
     if progress is not None:
         progress(0.0, "exact reduced fit of the training poses")
-    g = exact_reduced_q(projection, modal_rs, Z)                          # (F, rB)
+    screen, g = RemainderScreen.build(projection, modal_rs, Z)             # g: (F, rB)
     scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
     remainder = g - Z @ projection.linear_map(modal_rs).T
     target = (remainder / scale[:, None]).reshape(-1)                     # row = F-major (t, r)
 
-    # One buffer for every block of candidate columns: a fresh (F rB, candidates) array per
-    # block cost more in page faults than in the products that fill it.
-    width = 0 if candidates is None else min(int(candidates), len(T))
-    buffer = np.empty((len(Z) * projection.basis_size, width), order="F")
-
     def columns(tets):
-        if len(tets) > width:
-            return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
-        return reduced_rs_columns(projection, modal_rs, Z, tets, scale,
-                                  out=buffer[:, :len(tets)])
+        return reduced_rs_columns(projection, modal_rs, Z, tets, scale)
 
     inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
     tets, weights, history = cubature.greedy_nnls(
-        columns, target, tol=tol, max_picks=max_tets, candidates=candidates, rng=rng,
-        num_columns=len(T), progress=inner,
+        columns, target, tol=tol, max_picks=max_tets, rng=rng, num_columns=len(T),
+        candidates=CANDIDATES if candidates is None else candidates, progress=inner,
+        screen=screen,
         picks_per_block=max(1, int(max_tets) // 16) if picks_per_block is None else picks_per_block)
     info = dict(history=history, relative_residual=history[-1], poses=Z, projection=projection)
     return tets, weights, info
+
+
+SCREEN_BUDGET = 256 * 2 ** 20   # bytes for every tet's screening factors (float32, 12 F per tet)
+
+
+class RemainderScreen:
+    """Scores cubature candidates without forming their columns: the cosine of each tet's
+    column with a residual, for ``cubature.greedy_nnls``'s ``screen``.
+
+    A column is c_e = [P_e vec(r_e(t)) / s_t]_t (F rB,) with P_e = V_e (G_e B~)^T and
+    B~ = B (B^T L B)^-1 (``ReducedProjection.solved_basis``). So for a residual x (F, rB),
+    x_t . P_e r_e(t) = sum_a (B~ x_t)[node a] . Gamma_e[a, :, t] with the factors
+    Gamma_e[a, i, t] = V_e sum_j grad_a[j] r_e(t)[i, j] / s_t (4, 3, F), and
+    |c_e|^2 = sum_t Gamma_t^T (B~_e B~_e^T) Gamma_t with B~_e the tet's 12 rows of B~. A block
+    of k candidates then costs one (3N, rB) x (rB, F) product and O(k F) once the factors are
+    known, instead of O(k F rB 9) for its columns. ``build`` computes every tet's factors with
+    the exact fit of the training poses (one RS evaluation per tet and pose serves both) when
+    they fit in ``SCREEN_BUDGET``; otherwise each block's are computed when it is scored. The
+    factors and the inner products are float32: the scores only choose which columns are
+    formed, and those are exact.
+
+    projection: the ``ReducedProjection``; modal_rs (E, 9, m); Z (F, m) the training poses;
+    scale (F,) the per-pose |g_t|; factors, norms: every tet's (E, 12 F) float32 and (E,).
+    """
+
+    def __init__(self, projection, modal_rs, Z, scale, factors=None, norms=None):
+        self.projection, self.modal_rs, self.Z = projection, modal_rs, Z
+        self.inverse_scale = 1.0 / np.asarray(scale, dtype=np.float64)
+        self.solved_basis = projection.solved_basis.astype(np.float32)
+        self.num_poses = len(Z)
+        self._factors, self._norms = factors, norms
+
+    @classmethod
+    def build(cls, projection, modal_rs, Z, chunk=4, budget=SCREEN_BUDGET):
+        """(screen, g (F, rB)): the screen and the exact all-tet fits g_t of poses Z (F, m),
+        ``chunk`` poses at a time on threads, every tet's factors with them if they fit."""
+        n_tets, F = modal_rs.shape[0], len(Z)
+        stored = n_tets * 48 * F <= budget
+        factors = np.empty((F, 4, 3, n_tets), dtype=np.float32) if stored else None
+        weighted = cls._weighted_gradients(projection, slice(None)).transpose(1, 2, 0)
+
+        def fit(start):
+            poses = modal_rs_poses(modal_rs, Z[start:start + chunk]).reshape(-1, n_tets, 9)
+            remainders = [rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
+                          for y in poses]                                          # (3, 3, E)
+            for offset, remainder in enumerate(remainders if stored else ()):
+                # Gamma[a, i] = sum_j grad_a[j] r[i, j] for every tet at once
+                np.einsum("ajp,ijp->aip", weighted, remainder, out=factors[start + offset],
+                          casting="same_kind")
+            return projection.exact_q(remainders, entry_major=True)
+
+        remainder = np.concatenate(threads.ordered_map(fit, range(0, F, chunk)), axis=0)
+        g = remainder.reshape(F, -1) + Z @ projection.linear_map(modal_rs).T
+        scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+        screen = cls(projection, modal_rs, Z, scale)
+        if stored:
+            factors *= (1.0 / scale).astype(np.float32)[:, None, None, None]
+            factors = np.ascontiguousarray(factors.transpose(3, 1, 2, 0)).reshape(n_tets, -1)
+            norms = np.empty(n_tets)
+
+            def part(rows):
+                block = factors[rows].reshape(rows.stop - rows.start, 12, F)
+                norms[rows] = screen._norms_of(np.arange(rows.start, rows.stop), block)
+
+            threads.ordered_map(part, [slice(start, min(start + 256, n_tets))
+                                       for start in range(0, n_tets, 256)])
+            screen._factors, screen._norms = factors, norms
+        return screen, g
+
+    def __call__(self, residual, tets):
+        """Cosines (k,) of the columns of ``tets`` (k,) with a residual (F rB,), F-major."""
+        tets = np.asarray(tets, dtype=np.int64)
+        x = np.asarray(residual, dtype=np.float32).reshape(self.num_poses, -1)
+        nodal = (self.solved_basis @ x.T).reshape(self.projection.num_nodes, -1)   # (N, 3F)
+        scores = np.empty(len(tets))
+
+        def part(rows):
+            factors, norms = self.factors(tets[rows])
+            gathered = nodal[self.projection.T[tets[rows]]].reshape(len(norms), -1)
+            scores[rows] = np.einsum("pk,pk->p", gathered, factors) / norms
+
+        threads.ordered_map(part, threads.even_parts(len(tets)))
+        return scores
+
+    def factors(self, tets):
+        """Gamma (k, 12 F) float32, (a, i, t) per row, and |c_e| (k,) of tets (k,)."""
+        if self._factors is not None:
+            return self._factors[tets], self._norms[tets]
+        k, F = len(tets), self.num_poses
+        y = rs.warp_pose_block(self.modal_rs[tets], self.Z).transpose(0, 2, 1).reshape(-1, 9)
+        remainder = rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
+        remainder = remainder.reshape(3, 3, k, F) * self.inverse_scale            # r_e(t) / s_t
+        factors = np.einsum("paj,ijpt->pait", self._weighted_gradients(self.projection, tets),
+                            remainder).reshape(k, 12, F)
+        return factors.reshape(k, -1).astype(np.float32), self._norms_of(tets, factors)
+
+    def _norms_of(self, tets, factors):
+        """|c_e| (k,) from factors (k, 12, F) and each tet's 12 x 12 Gram of B~ rows."""
+        nodes = self.projection.solved_basis.reshape(self.projection.num_nodes, 3, -1)
+        nodes = nodes[self.projection.T[tets]].reshape(len(factors), 12, -1)         # B~_e
+        factors = np.asarray(factors, dtype=np.float64)
+        gram = nodes @ nodes.transpose(0, 2, 1)                                   # (k, 12, 12)
+        return np.maximum(np.sqrt(np.einsum("kat,kat->k", gram @ factors, factors)), 1e-300)
+
+    @staticmethod
+    def _weighted_gradients(projection, tets):
+        """V_e grad_a (k, 4, 3) of tets (k,) or a slice."""
+        return projection.shape_gradients[tets] * projection.recon.volumes[tets][:, None, None]
 
 
 def modal_rs_poses(modal_rs, Z, out=None):
@@ -875,19 +979,6 @@ def modal_rs_poses(modal_rs, Z, out=None):
     modal_rs = np.asarray(modal_rs)
     product = np.matmul(Z, modal_rs.reshape(-1, modal_rs.shape[2]).T, out=out)
     return product.reshape(-1, 9)
-
-
-def exact_reduced_q(projection, modal_rs, Z, chunk=4):
-    """(F, rB) all-tet reduced fits of poses Z (F, m); ``chunk`` poses at a time (memory),
-    the chunks on several threads (``threads.ordered_map``)."""
-    n_tets = modal_rs.shape[0]
-
-    def fit(start):
-        y = modal_rs_poses(modal_rs, Z[start:start + chunk]).reshape(-1, n_tets, 9)
-        return projection.exact_q([rs.rs_target_entries(pose) for pose in y], entry_major=True)
-
-    fits = threads.ordered_map(fit, range(0, len(Z), chunk))
-    return np.concatenate(fits, axis=0).reshape(len(Z), projection.basis_size)
 
 
 def reduced_rs_columns(projection, modal_rs, Z, tets, scale, out=None):
@@ -933,9 +1024,9 @@ def default_basis_size(num_modes, num_nodes=None, num_tets=None, memory_budget=M
     that and the size is m + m(m+1)/2 (m = 20: 230, m = 40: 860), with no fixed cap. With
     ``num_nodes`` N it is bounded by the memory budget (B takes 24 N rB bytes: the default
     256 MiB allows rB = 11 M / N, e.g. 1100 columns at N = 10,000 nodes) and by the 3N DOFs
-    (a basis cannot hold more independent columns). The cubature training matrix
-    (poses x rB x candidates doubles, 80 x rB x 400 x 8 bytes = 256 kB per column) is the
-    other cost that grows with rB; evaluation cost depends on the cubature size, not on rB.
+    (a basis cannot hold more independent columns). The cubature training's columns
+    (poses x rB doubles each, 80 x rB x 8 bytes) are the other cost that grows with rB;
+    evaluation cost depends on the cubature size, not on rB.
     With ``num_tets`` E it is also bounded by 3 E / 8: the cubature (``default_cubature_size``)
     picks about 1.25 rB of the E tets, and a basis near the mesh's own DOF count is fitted
     exactly but not by a cubature (measured: pinned bar, 648 tets, 40 modes, rB = 501 with
@@ -949,15 +1040,6 @@ def default_basis_size(num_modes, num_nodes=None, num_tets=None, memory_budget=M
     if num_tets is not None:
         size = min(size, max(m, 3 * int(num_tets) // 8))
     return size
-
-
-CANDIDATE_BUDGET = 256 * 2 ** 20    # bytes for one block of candidate columns (poses x rB each)
-
-
-def default_candidates(num_rows, budget=CANDIDATE_BUDGET):
-    """Candidate tets per block of the cubature training for columns of ``num_rows`` = poses
-    x rB: 1,000, fewer (down to 400) where that block would pass ``budget`` bytes."""
-    return int(min(1000, max(400, int(budget) // (8 * int(num_rows)))))
 
 
 def default_cubature_size(basis_size, num_tets=None):
@@ -983,7 +1065,7 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     (``second_order_basis`` with snapshot enrichment, ``max_size`` columns) [0.2, 0.5]; the
     cubature on ``num_poses`` other poses (``train_reduced_rs_cubature``) [0.5, 1].
     max_size None: ``default_basis_size`` (O(m^2), memory and mesh bounded); max_tets None:
-    ``default_cubature_size(max_size)``; candidates None: ``default_candidates``. The figures
+    ``default_cubature_size(max_size)``; candidates: see ``train_reduced_rs_cubature``. The figures
     below predate the O(m^2) rule. Measured
     on a pinned 4:1:1 bar with 20 modes and held-out poses up to 90 deg (strain <= 100 %):
     rB = 120 leaves up to about 1 % of the
@@ -1025,8 +1107,6 @@ def prepare_reduced_rs(X, T, masses, W, eigenvalues, recon, modal_rs=None, max_s
     start = time.perf_counter()
     poses = cubature.training_poses(num_modes, eigenvalues, num_poses, rng,
                                     max_rotation=max_rotation, modal_rs=modal_rs)
-    if candidates is None:
-        candidates = default_candidates(len(poses) * B.shape[1])
     tets, weights, fit = train_reduced_rs_cubature(
         X, T, modal_rs, B, recon, poses, max_tets=max_tets, tol=tol, rng=rng,
         candidates=candidates, progress=stage(0.5, 1.0))

@@ -1,6 +1,7 @@
 """Tests for solver.cubature: greedy NNLS, training poses, reduced RS cubature training.
 
 Oracles: synthetic problems with a known sparse non-negative solution, scipy.optimize.nnls,
+the formed columns against the screen that scores them without forming them,
 the rotation and strain of poses computed directly from modal_rs.
 """
 
@@ -55,6 +56,34 @@ def test_greedy_nnls_with_callable_columns_and_random_candidates():
     assert history[-1] <= 1e-10
     with pytest.raises(ValueError):
         cubature.greedy_nnls(columns, target)                     # num_columns is required
+
+
+def test_greedy_nnls_with_a_screen_forms_only_the_best_scored_columns_and_fits_the_same():
+    """A screen that gives the exact cosines leaves the fit bit for bit as it was (same random
+    blocks, same shortlists), while only the shortlist of each block is formed."""
+    A, truth, target = sparse_problem(seed=3)
+    norms = np.linalg.norm(A, axis=0)
+    formed = {False: [], True: []}
+
+    def fit(screened):
+        def columns(indices):
+            formed[screened].append(len(indices))
+            return A[:, indices]
+
+        def screen(residual, indices):
+            return residual @ A[:, indices] / norms[indices]
+
+        return cubature.greedy_nnls(columns, target, tol=1e-10, max_picks=60, candidates=200,
+                                    num_columns=A.shape[1], rng=np.random.default_rng(6),
+                                    picks_per_block=2, screen=screen if screened else None)
+
+    plain, screened = fit(False), fit(True)
+    np.testing.assert_array_equal(screened[0], plain[0])
+    np.testing.assert_array_equal(screened[1], plain[1])
+    assert screened[2] == plain[2]
+    assert set(formed[False]) == {200} and set(formed[True]) == {cubature.SCREEN * 2}
+    assert len(formed[True]) == len(formed[False]) > 1
+    np.testing.assert_allclose(full_weights(*screened[:2], A.shape[1]), truth, atol=1e-8)
 
 
 def test_greedy_nnls_weights_nonnegative_and_residual_never_grows():
@@ -239,3 +268,32 @@ def test_reduced_rs_cubature_training(small_bar):
 
     with pytest.raises(KeyboardInterrupt):
         reduced.train_reduced_rs_cubature(X, T, modal_rs, B, recon, poses, progress=cancel)
+
+
+def test_the_screen_scores_each_tet_as_its_formed_column_would(small_bar):
+    """RemainderScreen's cosines and norms, computed without the columns, against the columns
+    themselves (``reduced_rs_columns``); its exact fit against the all-tet fit of the RS
+    targets (``rs.rs_target`` of each pose, ``ReducedProjection.exact_q``). The same with every
+    tet's factors stored and with each block's computed when it is scored."""
+    X, T, masses, result, modal_rs, recon = small_bar
+    B = reduced.second_order_basis(X, T, masses, modal_rs, recon, result.vectors, max_size=30)
+    poses = cubature.training_poses(6, result.eigenvalues, 20, np.random.default_rng(4),
+                                    max_rotation=150.0 * DEG, modal_rs=modal_rs)
+    projection = reduced.ReducedProjection(X, T, B, recon)
+    exact = projection.exact_q(rs.rs_target(reduced.modal_rs_poses(modal_rs, poses))
+                               .reshape(len(poses), len(T), 3, 3))
+    tets = np.arange(len(T) - 1, 0, -3)                              # a subset, any order
+    for budget in (reduced.SCREEN_BUDGET, 0):
+        screen, g = reduced.RemainderScreen.build(projection, modal_rs, poses, budget=budget)
+        assert (screen._factors is not None) == (budget > 0)
+        np.testing.assert_allclose(g, exact, atol=1e-12 * np.abs(exact).max())
+        scale = np.linalg.norm(g, axis=1)
+        target = ((g - poses @ projection.linear_map(modal_rs).T) / scale[:, None]).reshape(-1)
+        columns = reduced.reduced_rs_columns(projection, modal_rs, poses, tets, scale)
+        norms = np.linalg.norm(columns, axis=0)
+        np.testing.assert_allclose(screen.factors(tets)[1], norms, rtol=1e-6)
+        for residual in (target, np.random.default_rng(5).normal(size=target.shape)):
+            cosines = residual @ columns / norms
+            scores = screen(residual, tets)
+            assert np.abs(scores - cosines).max() <= 1e-5 * np.abs(cosines).max()  # float32
+            np.testing.assert_array_equal(np.argsort(-scores)[:5], np.argsort(-cosines)[:5])
