@@ -917,18 +917,24 @@ class RemainderScreen:
         scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
         screen = cls(projection, modal_rs, Z, scale)
         if stored:
-            factors *= (1.0 / scale).astype(np.float32)[:, None, None, None]
-            factors = np.ascontiguousarray(factors.transpose(3, 1, 2, 0)).reshape(n_tets, -1)
-            norms = np.empty(n_tets)
-
-            def part(rows):
-                block = factors[rows].reshape(rows.stop - rows.start, 12, F)
-                norms[rows] = screen._norms_of(np.arange(rows.start, rows.stop), block)
-
-            threads.ordered_map(part, [slice(start, min(start + 256, n_tets))
-                                       for start in range(0, n_tets, 256)])
-            screen._factors, screen._norms = factors, norms
+            screen._store(factors.reshape(F, 12, n_tets))
         return screen, g
+
+    def _store(self, by_pose, step=256):
+        """Keep every tet's factors, from their pose-major (F, 12, E) layout, and norms."""
+        F, _, n_tets = by_pose.shape
+        factors, norms = np.empty((n_tets, 12 * F), dtype=np.float32), np.empty(n_tets)
+        inverse_scale = self.inverse_scale.astype(np.float32)[:, None, None]
+
+        def part(rows):                  # tets-major, a cache-sized block of tets at a time
+            for start in range(rows.start, rows.stop, step):
+                block = slice(start, min(start + step, rows.stop))
+                tet_major = (by_pose[:, :, block] * inverse_scale).transpose(2, 1, 0)
+                factors[block] = tet_major.reshape(len(tet_major), -1)
+                norms[block] = self._norms_of(np.arange(block.start, block.stop), tet_major)
+
+        threads.ordered_map(part, threads.even_parts(n_tets))
+        self._factors, self._norms = factors, norms
 
     def __call__(self, residual, tets):
         """Cosines (k,) of the columns of ``tets`` (k,) with a residual (F rB,), F-major."""
@@ -954,11 +960,12 @@ class RemainderScreen:
         remainder = rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
         remainder = remainder.reshape(3, 3, k, F) * self.inverse_scale            # r_e(t) / s_t
         factors = np.einsum("paj,ijpt->pait", self._weighted_gradients(self.projection, tets),
-                            remainder).reshape(k, 12, F)
-        return factors.reshape(k, -1).astype(np.float32), self._norms_of(tets, factors)
+                            remainder).reshape(k, 12, F).astype(np.float32)
+        return factors.reshape(k, -1), self._norms_of(tets, factors)
 
     def _norms_of(self, tets, factors):
-        """|c_e| (k,) from factors (k, 12, F) and each tet's 12 x 12 Gram of B~ rows."""
+        """|c_e| (k,) from factors (k, 12, F) and each tet's 12 x 12 Gram of B~ rows. In
+        float64: the rows of a tet nearly cancel (its gradients sum to zero)."""
         nodes = self.projection.solved_basis.reshape(self.projection.num_nodes, 3, -1)
         nodes = nodes[self.projection.T[tets]].reshape(len(factors), 12, -1)         # B~_e
         factors = np.asarray(factors, dtype=np.float64)
