@@ -883,15 +883,15 @@ class RemainderScreen:
     formed, and those are exact.
 
     projection: the ``ReducedProjection``; modal_rs (E, 9, m); Z (F, m) the training poses;
-    scale (F,) the per-pose |g_t|; factors, norms: every tet's (E, 12 F) float32 and (E,).
+    scale (F,) the per-pose |g_t|.
     """
 
-    def __init__(self, projection, modal_rs, Z, scale, factors=None, norms=None):
+    def __init__(self, projection, modal_rs, Z, scale):
         self.projection, self.modal_rs, self.Z = projection, modal_rs, Z
         self.inverse_scale = 1.0 / np.asarray(scale, dtype=np.float64)
         self.solved_basis = projection.solved_basis.astype(np.float32)
         self.num_poses = len(Z)
-        self._factors, self._norms = factors, norms
+        self._factors = self._norms = None      # every tet's (E, 12 F) float32 and (E,)
 
     @classmethod
     def build(cls, projection, modal_rs, Z, chunk=4, budget=SCREEN_BUDGET):
