@@ -283,9 +283,9 @@ def test_the_screen_scores_each_tet_as_its_formed_column_would(small_bar):
     exact = projection.exact_q(rs.rs_target(reduced.modal_rs_poses(modal_rs, poses))
                                .reshape(len(poses), len(T), 3, 3))
     tets = np.arange(len(T) - 1, 0, -3)                              # a subset, any order
-    for budget in (reduced.SCREEN_BUDGET, 0):
-        screen, g = reduced.RemainderScreen.build(projection, modal_rs, poses, budget=budget)
-        assert (screen._factors is not None) == (budget > 0)
+    for store in (True, False):
+        screen, g = reduced.RemainderScreen.build(projection, modal_rs, poses, store=store)
+        assert (screen._factors is not None) == store
         np.testing.assert_allclose(g, exact, atol=1e-12 * np.abs(exact).max())
         scale = np.linalg.norm(g, axis=1)
         target = ((g - poses @ projection.linear_map(modal_rs).T) / scale[:, None]).reshape(-1)
