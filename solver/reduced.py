@@ -899,15 +899,13 @@ class RemainderScreen:
         ``chunk`` poses at a time on threads; with ``store``, every tet's factors with them
         (E x 12 F float32, twice that while they are laid out)."""
         n_tets, F = modal_rs.shape[0], len(Z)
-        stored = bool(store)
-        factors = np.empty((F, 4, 3, n_tets), dtype=np.float32) if stored else None
+        factors = np.empty((F, 4, 3, n_tets), dtype=np.float32) if store else None
         weighted = cls._weighted_gradients(projection, slice(None)).transpose(1, 2, 0)
 
         def fit(start):
             poses = modal_rs_poses(modal_rs, Z[start:start + chunk]).reshape(-1, n_tets, 9)
-            remainders = [rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
-                          for y in poses]                                          # (3, 3, E)
-            for offset, remainder in enumerate(remainders if stored else ()):
+            remainders = [remainder_entries(y) for y in poses]                    # (3, 3, E)
+            for offset, remainder in enumerate(remainders if store else ()):
                 # Gamma[a, i] = sum_j grad_a[j] r[i, j] for every tet at once
                 np.einsum("ajp,ijp->aip", weighted, remainder, out=factors[start + offset],
                           casting="same_kind")
@@ -917,7 +915,7 @@ class RemainderScreen:
         g = remainder.reshape(F, -1) + Z @ projection.linear_map(modal_rs).T
         scale = np.maximum(np.linalg.norm(g, axis=1), 1e-300)
         screen = cls(projection, modal_rs, Z, scale)
-        if stored:
+        if store:
             screen._store(factors.reshape(F, 12, n_tets))
         return screen, g
 
@@ -958,8 +956,7 @@ class RemainderScreen:
             return self._factors[tets], self._norms[tets]
         k, F = len(tets), self.num_poses
         y = rs.warp_pose_block(self.modal_rs[tets], self.Z).transpose(0, 2, 1).reshape(-1, 9)
-        remainder = rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
-        remainder = remainder.reshape(3, 3, k, F) * self.inverse_scale            # r_e(t) / s_t
+        remainder = remainder_entries(y).reshape(3, 3, k, F) * self.inverse_scale  # r_e(t) / s_t
         factors = np.einsum("paj,ijpt->pait", self._weighted_gradients(self.projection, tets),
                             remainder).reshape(k, 12, F)
         return factors.reshape(k, -1).astype(np.float32), self._norms_of(tets, factors)
@@ -977,6 +974,12 @@ class RemainderScreen:
     def _weighted_gradients(projection, tets):
         """V_e grad_a (k, 4, 3) of tets (k,) or a slice."""
         return projection.shape_gradients[tets] * projection.recon.volumes[tets][:, None, None]
+
+
+def remainder_entries(y):
+    """The nonlinear remainder b(y) - [omega]x - eps (3, 3, n), entry-major, of RS coordinates
+    y (n, 9): what the cubature integrates (``ReducedRS``)."""
+    return rs.rs_target_entries(y) - (LINEAR_TARGET @ y.T).reshape(3, 3, -1)
 
 
 def modal_rs_poses(modal_rs, Z, out=None):
