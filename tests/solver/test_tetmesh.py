@@ -241,3 +241,40 @@ def test_far_and_scaled_cubes_mesh_like_the_cube_at_the_origin():
     assert fem.mesh_volume(X1 - offset, T1) == pytest.approx(1.0, rel=0.01)
     assert fem.mesh_volume(X2, T2) == pytest.approx(1e9, rel=0.01)
     assert max(len(T0), len(T1), len(T2)) <= 1.5 * min(len(T0), len(T1), len(T2))
+
+
+# Reproducibility: fTetWild's shuffle seeded ----------------------------------------------------
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"),
+                    reason="the worker fixes fTetWild's random_device seed on Linux only")
+def test_the_same_surface_meshes_to_the_same_tets_every_time(tmp_path):
+    """fTetWild shuffles its triangle insertion order from std::random_device; the worker seeds
+    it, so three runs (in three worker processes, on all cores) give bit-identical meshes.
+    Unseeded, icosphere runs differ in node count from run to run."""
+    V, F = icosphere(2)
+    meshes = [tetmesh.tetrahedralize(V, F, edge_length_fac=0.1) for _ in range(3)]
+    print("nodes, tets per run:", [(len(X), len(T)) for X, T in meshes])
+    for X, T in meshes[1:]:
+        np.testing.assert_array_equal(X, meshes[0][0])
+        np.testing.assert_array_equal(T, meshes[0][1])
+    in_path, out_path = tmp_path / "in.npz", tmp_path / "out.npz"
+    with open(in_path, "wb") as f:
+        np.savez(f, vertices=V, faces=F.astype(np.int32), edge_length_fac=0.1, epsilon=1e-3)
+    subprocess.run([sys.executable, str(tetmesh.WORKER), str(in_path), str(out_path)],
+                   env=tetmesh._worker_env(), cwd=tmp_path, check=True, timeout=120)
+    with np.load(out_path) as out:
+        assert bool(out["seeded"])
+
+
+def test_the_worker_finds_the_random_device_call_slot_only_where_it_is():
+    """The seed goes through the call slot named by the library's JUMP_SLOT relocation: found in
+    pytetwild's library, absent for a symbol it does not call and in a file that is no ELF; a
+    library this process has not loaded is left alone."""
+    from pytetwild import PyfTetWildWrapper
+    from solver import tetwild_worker
+    library = PyfTetWildWrapper.__file__
+    slot = tetwild_worker._plt_slot_offset(library, tetwild_worker.RANDOM_DEVICE_GETVAL)
+    assert slot is not None and slot % 8 == 0
+    assert tetwild_worker._plt_slot_offset(library, b"_ZN12not_a_symbolEv") is None
+    assert tetwild_worker._plt_slot_offset(str(tetmesh.WORKER), b"anything") is None
+    assert not tetwild_worker.seed_random_device("/nonexistent/library.so")
