@@ -11,7 +11,8 @@ leaves the previous cache usable. Every loaded array is validated; on any doubt 
 rebuilt with one warning.
 
 The tet mesh itself travels with the .blend (`obj.rs_elastic["tet_mesh"]`, with the tets key it
-was made for), because fTetWild is not deterministic: re-preparing the same file, in any process
+was made for), because fTetWild is deterministic only where its worker can seed it (Linux,
+``solver.tetwild_worker``) and may change between builds: re-preparing the same file, in any process
 and without the cache folder, reuses it, and only a new surface or new mesher settings replace it.
 `obj.rs_elastic["energy_cache"]` records the energy keys made for the current preparation, so
 that `prune` keeps and `persist` copies their files.

@@ -246,7 +246,7 @@ def test_painted_end_face_pins_the_whole_face_and_nothing_behind_it(box_set):
         others = np.flatnonzero(end_weights == 0)
         assert (pins.embedding[others] != b.Phi[others]).nnz == 0
         # The old rule: only the nodes of the tets holding the four corner vertices (at most
-        # 4 x 4; how many depends on the tet mesh, which fTetWild varies from run to run).
+        # 4 x 4; how many depends on the tet mesh fTetWild makes).
         corners = b.V[end_weights > 0]
         to_corner = np.linalg.norm(b.X[old][:, None] - corners[None], axis=2).min(axis=1)
         assert 4 <= len(old) <= 16 and to_corner.max() <= 2.5 * EDGE
