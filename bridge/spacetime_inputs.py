@@ -151,16 +151,9 @@ def _rig_tracks(obj, blender_scene, body, frames, tracks, warnings):
 
 def solve(job_inputs, job):
     """Worker thread: run the solver and turn its result into render-vertex poses."""
-    limit = spacetime.step_limit(job_inputs.problem, job_inputs.iterations,
-                                 job_inputs.optimise_material)
-
-    def progress(iteration, objective):
-        job.step(min(0.95, iteration / max(limit, 1)),
-                 f"iteration {iteration}, objective {objective:.4g}")
-
     try:
         result = spacetime.solve(job_inputs.problem, optimise_material=job_inputs.optimise_material,
-                                 iterations=job_inputs.iterations, callback=progress,
+                                 iterations=job_inputs.iterations, progress=job.step,
                                  should_cancel=job.is_cancelled,
                                  exact_handles=job_inputs.exact_handles)
     except spacetime.SolveCancelled:

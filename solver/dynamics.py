@@ -228,8 +228,11 @@ class Simulation:
         self.substeps = int(substeps) or automatic_substeps(self.h, self.omega[-1])
         self.state = State(float(start_time), self.h / self.substeps)
         self._start_time = self.time
+        # float32: the check after every step reads B once; its error is far inside
+        # MIN_VOLUME_RATIO (``inversion.DeformedVolumes``)
         self._volumes = (None if tets is None else
-                         inversion.DeformedVolumes(rest_positions, tets, deformer.basis))
+                         inversion.DeformedVolumes(rest_positions, tets, deformer.basis,
+                                                   dtype=np.float32))
         self.contact = None
         if contact is not None:    # the contact's friction and damping act on our end velocity
             contact.scheme = self.scheme

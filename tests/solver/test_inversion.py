@@ -351,6 +351,33 @@ def test_reconstruction_barrier_gradient_matches_central_differences():
     assert np.allclose(hess, hess.T) and np.linalg.eigvalsh(hess).min() >= -1e-9 * hess.max()
 
 
+def test_deformed_volumes_match_determinants_of_the_positions_in_both_precisions():
+    """DeformedVolumes.ratios against np.linalg.det of the deformed edge matrices (an independent
+    recipe, from world positions) on poses from rest to inverting ones, the body 1,000 m from
+    the origin: float64 to round-off, float32 (the step check's) within 1e-5 of the largest
+    ratio, the bound its docstring gives."""
+    body = coarse_column()
+    far = body["X"] + np.array([1000.0, -500.0, 200.0])
+    T, B = body["T"], body["deformer"].basis
+    exact = inversion.DeformedVolumes(far, T, B)
+    single = inversion.DeformedVolumes(far, T, B, dtype=np.float32)
+    direction = np.random.default_rng(7).normal(size=body["deformer"].num_coords)
+    smallest = []
+    for scale in (0.0, 0.3, 3.0, 30.0):
+        q = body["deformer"].q(scale * direction)
+        x = body["X"] + (B @ q).reshape(-1, 3)
+        reference = (np.linalg.det(x[T[:, 1:]] - x[T[:, :1]])
+                     / np.linalg.det(body["X"][T[:, 1:]] - body["X"][T[:, :1]]))
+        size = np.abs(reference).max()
+        np.testing.assert_allclose(exact.ratios(q), reference, rtol=0, atol=1e-10 * size)
+        got = single.ratios(q)
+        assert single._coordinate_basis.dtype == np.float32
+        np.testing.assert_allclose(got, reference, rtol=0, atol=1e-5 * size)
+        smallest.append(reference.min())
+    print("smallest det F per pose:", np.round(smallest, 3))
+    assert smallest[0] == pytest.approx(1.0) and min(smallest) < 0.0   # rest to inverted
+
+
 def test_reconstruction_barrier_is_zero_unwatched_and_near_rest_and_infinite_inverted():
     body = coarse_column()
     barrier = reconstruction_barrier(body, watch_all=False)

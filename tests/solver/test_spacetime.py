@@ -531,6 +531,26 @@ def test_continuation_avoids_the_poor_basin_of_stiff_handles(reduced_bar):
     assert warm.objective <= 1.10 * followed.objective
 
 
+def test_progress_reports_every_step_and_follows_the_solve_to_its_end(reduced_bar):
+    """The bench's edit (continuation stages, then the motion): progress(fraction, text) comes
+    once per GN step, stages included (as many reports as the solve's iterations), never goes
+    back, stays within [0, 0.99], and a converged solve ends at 0.99 (its last run's decrease
+    reached the tolerance), where steps against the 200-step limit said 0.18. The solve is the
+    same with it as without it (bit for bit)."""
+    problem, _ = bench_edit(reduced_bar)
+    reports = []
+    result = st.solve(problem, progress=lambda fraction, text: reports.append((fraction, text)))
+    fractions = np.array([fraction for fraction, _ in reports])
+    print(f"{len(reports)} reports over {result.iterations} steps: "
+          f"{np.round(fractions[::5], 3)} ... {fractions[-1]:.3f}")
+    assert result.converged and len(reports) == result.iterations
+    assert np.all(np.diff(fractions) >= 0.0) and fractions[0] >= 0.0
+    assert fractions[-1] == 0.99 and result.iterations / st.step_limit(problem) < 0.25
+    assert fractions[len(fractions) // 2] < 0.9          # not at the end from the start
+    assert reports[-1][1] == f"step {result.iterations}, objective {result.objective:.4g}"
+    np.testing.assert_array_equal(result.Z, st.solve(problem).Z)
+
+
 # 4. Material optimisation -------------------------------------------------------------------
 
 def material_problem(seed=5):
