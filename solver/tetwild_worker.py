@@ -7,8 +7,8 @@ IN.npz holds ``vertices`` (n, 3) float64, ``faces`` (m, 3) int32, scalars ``edge
 ``stop_energy`` and ``max_iterations`` (fTetWild's optimisation stops at that AMIPS energy or
 after that many passes; pytetwild's defaults when absent). OUT.npz
 receives ``nodes`` (N, 3) float64 and ``tets`` (E, 4) int32. A crash of fTetWild kills only this
-process. Imports nothing but numpy and pytetwild (no package-relative imports: it is run as a
-script).
+process. Imports nothing but numpy, pytetwild and the standard library (no package-relative
+imports: it is run as a script).
 
 fTetWild shuffles the order in which it inserts the input triangles with a generator seeded by
 ``std::random_device``, so two runs on the same surface give different meshes. On Linux the worker
@@ -79,6 +79,8 @@ def _mappings(library_path):
             for row in rows if len(row) >= 6 and row[5] == library_path]
 
 
+# A Python callback: it takes the GIL, which the calling thread already holds (pytetwild does not
+# release it, and fTetWild draws its seed once, on that thread, before its parallel parts).
 @ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
 def _fixed_random_device(_device):
     return FIXED_SEED
