@@ -496,15 +496,19 @@ class DeformedVolumes:
                 dtype=self.dtype).reshape(self.basis.shape)
         u = (self._coordinate_basis @ np.asarray(q, dtype=self.dtype)).reshape(3, -1)
         corner = self._corners
-        (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = (
-            [self._rest_edges[k, i] + (np.take(u[i], corner[k + 1]) - np.take(u[i], corner[0]))
-             for i in range(3)] for k in range(3))
-        det = x1 * (y2 * z3 - z2 * y3) + y1 * (z2 * x3 - x2 * z3) + z1 * (x2 * y3 - y2 * x3)
-        return det / self.rest_determinants
+        edges = ([self._rest_edges[k, i] + (np.take(u[i], corner[k + 1]) - np.take(u[i], corner[0]))
+                  for i in range(3)] for k in range(3))
+        return _column_determinants(*edges) / self.rest_determinants
 
 
 def _edge_determinants(x, tets):
     """(E,) det [x_b - x_a, x_c - x_a, x_d - x_a] (6 times the signed volume)."""
     a = x[tets[:, 0]]
-    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = ((x[tets[:, k]] - a).T for k in (1, 2, 3))
+    return _column_determinants(*((x[tets[:, k]] - a).T for k in (1, 2, 3)))
+
+
+def _column_determinants(e1, e2, e3):
+    """(E,) det [e1, e2, e3] of E 3x3 matrices whose columns are given by coordinate, each
+    (3, E) or a sequence of three (E,) arrays."""
+    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = e1, e2, e3
     return x1 * (y2 * z3 - z2 * y3) + y1 * (z2 * x3 - x2 * z3) + z1 * (x2 * y3 - y2 * x3)

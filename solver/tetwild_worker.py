@@ -42,7 +42,8 @@ def bound_own_time(time_limit):
         signal.alarm(int(math.ceil(time_limit)) + SELF_LIMIT_MARGIN)
 
 
-RANDOM_DEVICE_GETVAL = b"_ZNSt13random_device9_M_getvalEv"  # unsigned std::random_device::_M_getval()
+# unsigned int std::random_device::_M_getval(), what each draw of a std::random_device calls
+RANDOM_DEVICE_GETVAL = b"_ZNSt13random_device9_M_getvalEv"
 FIXED_SEED = 20231   # any constant: fTetWild only needs the same shuffle every run
 
 
@@ -134,8 +135,8 @@ def main(in_path, out_path):
                                            epsilon=epsilon, num_threads=num_threads, quiet=True,
                                            **optimisation)
     with open(out_path, "wb") as f:
-        np.savez(f, nodes=np.asarray(nodes, dtype=np.float64), tets=np.asarray(tets, dtype=np.int32),
-                 seeded=seeded)
+        np.savez(f, nodes=np.asarray(nodes, dtype=np.float64),
+                 tets=np.asarray(tets, dtype=np.int32), seeded=seeded)
 
 
 if __name__ == "__main__":
