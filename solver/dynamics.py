@@ -43,6 +43,7 @@ MIN_VOLUME_RATIO = 1e-3    # det F at or below this counts as inverted (flat or 
 SUBSTEP_BOUND = 1.0        # largest dt * w_max of automatic substeps (module docstring)
 MAX_AUTO_SUBSTEPS = 64     # automatic substeps stop here; only top-mode accuracy suffers past it
 MAX_SUBSTEPS = 1000        # largest user override
+SINGLE_PRECISION_TOLERANCE = 1e-6   # Newton tolerances from here up run the cubature in float32
 
 
 class InversionError(RuntimeError):
@@ -191,6 +192,11 @@ class Simulation:
       samples from the body's space to the world, x_p = A_p(t) Y_p + b_p, before the frame
       (e.g. ``rig.RigMotion.placement``: the skinning of a rig's flesh, which the simulation
       solves in rest space); None is the identity. Fixed frame only, and only with contact.
+    dtype: of the deformer's cubature products (``reduced.ReducedRS.astype``; ``deformer`` is
+      then that copy); None: float32 unless ``tolerance`` is below
+      ``SINGLE_PRECISION_TOLERANCE`` (float32's rounding of q, about 1e-7 of its nonlinear
+      part, would stall Newton there). float64 where q must be smooth to round-off (finite
+      differences).
 
     The body starts at rest in its frame at s = 0 (``set_state`` changes that); a moving frame's
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
@@ -203,9 +209,15 @@ class Simulation:
                  mass_damping=0.0, stiffness_damping=0.0, free=False, frame_motion=None,
                  start_time=0.0, tolerance=1e-5, max_iterations=20, integrator="newmark",
                  substeps=1, tets=None, contact=None, external_force=None,
-                 sample_placement=None):
+                 sample_placement=None, dtype=None):
         _check_arguments(deformer, h, mass_damping, stiffness_damping, free, frame_motion,
                          substeps, contact, external_force, sample_placement)
+        # A step is mostly the cubature's (rB, 9C) products: in float32 they take half as long
+        # (``reduced.ReducedRS.astype``), their rounding far inside the Newton tolerance.
+        astype = getattr(deformer, "astype", None)
+        if astype is not None:
+            single = dtype is None and tolerance >= SINGLE_PRECISION_TOLERANCE
+            deformer = astype(np.float32 if single else (dtype or np.float64))
         self.scheme = integrators.scheme(integrator)
         self.integrator = self.scheme.name
         self.deformer, self.potential, self.external_force = deformer, potential, external_force
@@ -383,7 +395,7 @@ class Simulation:
         model = self._inertia(plan, end)
         if self.contact is None:
             s, q, iterations = self.solver.minimise(model, plan.guess, plan.damping,
-                                                    q=plan.guess_q)
+                                                    q=plan.guess_q, jacobian=plan.guess_jacobian)
             R, c = frames.best_frame(self.moments, model, plan.target, q) if self.free else end
         elif self.free:
             self._begin_contact(plan)

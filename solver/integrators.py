@@ -134,7 +134,8 @@ class StepPlan:
     ``frames.Field`` x_hat, or q_hat (rB,) in a fixed frame, which adds its loads itself); mass
     damping (k [1/s], e (rB,)) as k/2 q^T M_B q + e.q; the stiffness damping
     (``newton.Damping``); the first guess s (m,); Newmark's pushed-forward q_dot (rB,) and
-    q(guess) (rB,) when the scheme has it at hand (None: the solver evaluates it)."""
+    q(guess) (rB,) and dq/ds (rB, m) there when the scheme has them at hand (None: the solver
+    evaluates them)."""
 
     weight: float
     target: object
@@ -143,16 +144,22 @@ class StepPlan:
     guess: np.ndarray
     body_velocity: np.ndarray = None
     guess_q: np.ndarray = None
+    guess_jacobian: np.ndarray = None
 
 
-def _q_rows(deformer, s, shifts):
-    """q(s + shift) (k, rB) for shifts [(m,)...], in one ``q_batch`` call where the deformer
-    has one (the per-call overhead of the cubature's RS map is paid once)."""
+def _q_rows(deformer, s, shifts, jacobian_at=None):
+    """(q(s + shift) (k, rB) for shifts [(m,)...], dq/ds (rB, m) at shift ``jacobian_at`` or
+    None), in one ``q_batch`` call where the deformer has one (the per-call overhead of the
+    cubature's RS map is paid once), the Jacobian in the same product where it has
+    ``q_batch_and_jacobian``."""
     if not shifts:
-        return []
+        return [], None
     points = s + np.array(shifts)
+    fused = getattr(deformer, "q_batch_and_jacobian", None)
+    if jacobian_at is not None and fused is not None:
+        return fused(points, jacobian_at)
     batch = getattr(deformer, "q_batch", None)
-    return batch(points) if batch is not None else [deformer.q(p) for p in points]
+    return (batch(points) if batch is not None else [deformer.q(p) for p in points]), None
 
 
 def trapezoidal(rates, delta, dt):
@@ -215,13 +222,15 @@ class NewmarkScheme:
         s +- dt v_s (J v_s and kappa, errors O(dt^2) like the scheme's) and s +- dt^2/4 a_s
         (J a_s, the displacement a_s makes in x_hat): four q evaluations cost a fraction of one
         Jacobian, and they are exact for a linear map. with_guess: also return q at the
-        predictor s + dt v_s (evaluated here anyway), the step's first Newton iterate.
+        predictor s + dt v_s (evaluated here anyway), the step's first Newton iterate, and
+        dq/ds there if the deformer gives it with the same evaluation (else None).
         """
         s, q, v, a, dt = pose.coords, pose.q, rates.velocity, rates.acceleration, sim.dt
         eps = 0.25 * dt ** 2
         shifts = ([eps * a, -eps * a] if J is None and a.any() else []) + (
             [dt * v, -dt * v] if v.any() else [])
-        at = _q_rows(sim.deformer, s, shifts)            # one batched evaluation of q(s)
+        ahead = len(shifts) - 2 if with_guess and v.any() else None
+        at, guess_jacobian = _q_rows(sim.deformer, s, shifts, ahead)   # one batched evaluation
         if J is not None:
             v_q, a_q = J @ v, J @ a
         else:
@@ -234,7 +243,7 @@ class NewmarkScheme:
             if J is None:
                 v_q = (ahead - behind) / (2.0 * dt)
         if with_guess:
-            return v_q, a_q, (at[-2] if v.any() else q)
+            return v_q, a_q, (at[-2] if v.any() else q), guess_jacobian
         return v_q, a_q
 
     def frame_rates(self, sim, pose, rates):
@@ -278,7 +287,7 @@ class NewmarkScheme:
         pose, rates, dt = sim.state.pose, sim.state.carried, sim.dt
         if sim.frame_motion is not None:
             self.follow_frame(sim, *end)
-        v_q, a_q, guess_q = self.body_rates(sim, pose, rates, with_guess=True)
+        v_q, a_q, guess_q, guess_jacobian = self.body_rates(sim, pose, rates, with_guess=True)
         v_damped = rates.velocity - 0.5 * rates.kick     # the velocity the damping sees
         damped_q = v_q - 0.5 * rates.kick_q
         if sim.fixed_frame:
@@ -289,7 +298,7 @@ class NewmarkScheme:
         damping = newton.Damping(2.0 * sim.beta / dt * K0, sim.beta * (K0 @ v_damped),
                                  pose.coords)
         return StepPlan(4.0 / dt ** 2, target, (k, -(M @ (k * pose.q + sim.alpha * damped_q))),
-                        damping, pose.coords + dt * rates.velocity, v_q, guess_q)
+                        damping, pose.coords + dt * rates.velocity, v_q, guess_q, guess_jacobian)
 
     def target(self, sim, pose, rates, v_q, a_q):
         """x_hat = x_n + dt v_n + dt^2/4 (a_n + g) as a world field, v and a pushed forward:

@@ -82,19 +82,19 @@ class StepSolver:
         value = model.evaluate(q, 0)[0] + self.potential.evaluate(s, 0)[0]
         return value + damping.value(s)
 
-    def minimise(self, model, s, damping, max_iterations=None, q=None):
-        """Newton / line search on s from the guess s (q: q(s) if known); returns
-        (s, q(s), iterations)."""
+    def minimise(self, model, s, damping, max_iterations=None, q=None, jacobian=None):
+        """Newton / line search on s from the guess s (q: q(s), jacobian: dq/ds there, if
+        known); returns (s, q(s), iterations)."""
         q = self.deformer.q(s) if q is None else q
         f = self.objective(model, s, q, damping)
-        iterations, J = 0, None
+        iterations, J, known = 0, None, jacobian
         for iterations in range(1, (max_iterations or self.max_iterations) + 1):
             _, gq, Hq = model.evaluate(q, 2)
             _, gV, HV = self.potential.evaluate(s, 2)
             own = gV + damping.matrix @ (s - damping.start) - damping.force
             fresh = J is None
             if fresh:                                 # the step's first iterate
-                J = self.deformer.q_jacobian(s)
+                J = self.deformer.q_jacobian(s) if known is None else known
                 grad, inertia = J.T @ gq + own, J.T @ (Hq @ J)
             else:                                     # the exact gradient, without dq/ds
                 grad = self._q_gradient(s, gq) + own

@@ -349,16 +349,20 @@ LINEAR_TARGET = np.concatenate([rs.skew(np.eye(3)).transpose(1, 2, 0).reshape(9,
                                 rs.STRAIN_BASIS.transpose(1, 2, 0).reshape(9, 6)], axis=1)
 # vec(R E_k) = vec(R) @ _STRAIN_MAP[:, k::6]: the strain columns of db/dy, linear in R.
 _STRAIN_MAP = np.einsum("rq,kts->rtqsk", np.eye(3), rs.STRAIN_BASIS).reshape(9, 54)
-# skew(e_i) @ F, row r = _EF_SIGN[i, r] * F[_EF_ROW[i, r]] (a cross product, no matmul).
-_EF_ROW = np.array([[0, 2, 1], [2, 0, 0], [1, 0, 0]])
-_EF_SIGN = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
+# omega (n, 3) @ _SKEW_MAP (3, 9) = vec(skew(omega)), row-major (exact: its entries are 0, +-1).
+_SKEW_MAP = np.ascontiguousarray(LINEAR_TARGET[:, :3].T)
+# omega[:, _OUTER_ROWS] * omega[:, _OUTER_COLS] = vec(omega omega^T).
+_OUTER_ROWS, _OUTER_COLS = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
+_STRAIN_ENTRIES = np.ascontiguousarray(rs.STRAIN_BASIS.reshape(6, 9))
+_EYE9 = np.eye(3).reshape(9)
 
 
 def _rs_map(y, jacobian):
     """vec(b(y)) (n, 9); with ``jacobian`` also R (n, 3, 3), the left Jacobian J_l (n, 3, 3)
     and EF (n, 9, 3), where EF[:, :, i] = vec(skew(e_i) F), F = I + b = R (I + eps).
 
-    Written for a few hundred tets per call, with few numpy operations. With
+    Written for a few hundred tets per call, with few numpy operations (each costs more in
+    its call than in its arithmetic here), on rows of 9 entries. With
     K^2 = omega omega^T - t^2 I: R = (1 - b t^2) I + a K + b omega omega^T, and likewise J_l.
     Rotation derivative: dR/d omega_i = skew(J_l e_i) R (J_l is the left Jacobian of SO(3)),
     so d vec(b)/d omega = EF J_l, and d vec(b)/d eps_k = vec(R E_k) (linear in R).
@@ -367,19 +371,26 @@ def _rs_map(y, jacobian):
     omega = y[:, :3]
     t2 = np.einsum("ni,ni->n", omega, omega)
     a, b, e = rs.rodrigues_coefficients(t2)
-    K = rs.skew(omega)
-    outer = omega[:, :, None] * omega[:, None, :]
-    eye = np.eye(3)
-    R = (a[:, None, None] * K + b[:, None, None] * outer
-         + (1.0 - b * t2)[:, None, None] * eye)
-    F = R @ ((y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + eye)
-    target = F.reshape(n, 9) - eye.reshape(9)
+    K = omega @ _SKEW_MAP
+    outer = omega[:, _OUTER_ROWS] * omega[:, _OUTER_COLS]
+    R = (a[:, None] * K + b[:, None] * outer + (1.0 - b * t2)[:, None] * _EYE9).reshape(n, 3, 3)
+    F = R @ (y[:, 3:] @ _STRAIN_ENTRIES + _EYE9).reshape(n, 3, 3)
+    target = F.reshape(n, 9) - _EYE9
     if not jacobian:
         return target
-    J_l = (b[:, None, None] * K + e[:, None, None] * outer
-           + (1.0 - e * t2)[:, None, None] * eye)
-    EF = (_EF_SIGN[None, :, :, None] * F[:, _EF_ROW]).reshape(n, 3, 9).transpose(0, 2, 1)
+    J_l = (b[:, None] * K + e[:, None] * outer + (1.0 - e * t2)[:, None] * _EYE9).reshape(n, 3, 3)
+    # skew(e_i) F: rows of F, signed, moved (a cross product with e_i, no matmul)
+    EF = np.zeros((n, 9, 3))
+    EF[:, 3:6, 0], EF[:, 6:9, 0] = -F[:, 2], F[:, 1]
+    EF[:, 0:3, 1], EF[:, 6:9, 1] = F[:, 2], -F[:, 0]
+    EF[:, 0:3, 2], EF[:, 3:6, 2] = -F[:, 1], F[:, 0]
     return target, R, J_l, EF
+
+
+def fast_remainders(y):
+    """vec(r(y)) (n, 9) = vec(b(y)) - [omega]x - eps of RS coordinates y (n, 9), as
+    ``remainder_entries`` (row-major, for the few cubature tets)."""
+    return _rs_map(y, False) - y @ LINEAR_TARGET.T
 
 
 def fast_targets(y, jacobian=False):
@@ -506,7 +517,7 @@ class ReducedRS:
     with A (rB, m) = ``ReducedProjection.linear_map`` the exact all-tet fit of the linear
     targets. Small poses and the Jacobian at rest are therefore exact (q = z on the modes'
     coordinates), and the cubature spends its tets on the rotation nonlinearity. Evaluated
-    as q = offset z + (w P) vec(b) with offset = A - (w P) vec(linear targets) (rB, m).
+    as q = A z + (w P) vec(r) with r = b - [omega]x - eps the remainder (``remainder_entries``).
 
     Attributes:
       num_coords           m, number of modal coordinates z.
@@ -517,6 +528,7 @@ class ReducedRS:
       projections          P_C (C, rB, 9) for the cubature tets only.
       modal_rs_cubature    (C, 9, m) linear RS of the modes on the cubature tets.
       linear_map           A (rB, m).
+      dtype                of the (w P) products: float64, or what ``astype`` gave.
 
     ``exact_q`` (the all-tet fit) needs the full mesh: it works on objects made by ``build``
     (which keeps a ``ReducedProjection`` and the full modal_rs by reference), or after
@@ -524,7 +536,7 @@ class ReducedRS:
     """
 
     def __init__(self, basis, cubature_tets, cubature_weights, projections, modal_rs_cubature,
-                 linear_map, projection=None, modal_rs=None):
+                 linear_map, projection=None, modal_rs=None, dtype=np.float64):
         self.basis = None if basis is None else np.asarray(basis, dtype=np.float64)
         self.cubature_tets = np.asarray(cubature_tets, dtype=np.int64).reshape(-1)
         self.cubature_weights = np.asarray(cubature_weights, dtype=np.float64).reshape(-1)
@@ -533,16 +545,19 @@ class ReducedRS:
         self.linear_map = np.asarray(linear_map, dtype=np.float64)
         self.num_coords = self.modal_rs_cubature.shape[2]
         self.basis_size = self.projections.shape[1]
-        # Weighted projections flattened to (rB, 9C): q = wP @ vec(b) over all cubature tets
-        # is one matrix-vector product, and the Jacobian one matrix-matrix product.
+        m = self.num_coords
+        # Weighted projections flattened to (rB, 9C): q = A z + wP @ vec(r) over all cubature
+        # tets is one matrix-vector product, and the Jacobian one matrix-matrix product. They
+        # act on the remainder r alone, so in float32 (``astype``) their rounding is relative
+        # to the nonlinear part: small poses and the Jacobian at rest stay exact.
+        self.dtype = np.dtype(dtype)
         self._weighted = np.ascontiguousarray(
             (self.cubature_weights[:, None, None] * self.projections)
-            .transpose(1, 0, 2).reshape(self.basis_size, -1))
-        linear = np.einsum("ij,cjm->cim", LINEAR_TARGET, self.modal_rs_cubature)
-        self._offset = self.linear_map - self._weighted @ linear.reshape(-1, self.num_coords)
+            .transpose(1, 0, 2).reshape(self.basis_size, -1), dtype=self.dtype)
+        self._linear_chain = np.einsum("ij,cjm->cim", LINEAR_TARGET,
+                                       self.modal_rs_cubature).reshape(-1, m)       # (9C, m)
         # Per cubature tet: d omega/dz (C, 3, m) and d(I + eps)/dz as (C, 3, 3m), so the chain
         # (db/dy)(QW) = EF J_l d omega/dz + vec(R d eps/dz) is three batched products.
-        m = self.num_coords
         self._modal_rs_flat = self.modal_rs_cubature.reshape(-1, m)                # (9C, m)
         self._omega_rate = np.ascontiguousarray(self.modal_rs_cubature[:, :3, :])
         self._strain_rate = np.ascontiguousarray(np.einsum(
@@ -564,6 +579,17 @@ class ReducedRS:
                    modal_rs[tets], projection.linear_map(modal_rs), projection=projection,
                    modal_rs=modal_rs)
 
+    def astype(self, dtype):
+        """This deformer with its cubature products (the (rB, 9C) weighted projections) in
+        dtype: float32 halves the memory they read per evaluation and runs the products about
+        twice as fast (the dynamics' steps); q's rounding is then about 1e-7 of its nonlinear
+        part, too coarse for finite differences. Shares every other array."""
+        if np.dtype(dtype) == self.dtype:
+            return self
+        return ReducedRS(self.basis, self.cubature_tets, self.cubature_weights, self.projections,
+                         self.modal_rs_cubature, self.linear_map, self._projection,
+                         self._modal_rs, dtype)
+
     def attach_full(self, X, T, modal_rs, recon):
         """Give a loaded deformer the full-mesh data ``exact_q`` needs (requires ``basis``)."""
         self._projection = ReducedProjection(X, T, self.basis, recon)
@@ -576,7 +602,7 @@ class ReducedRS:
         return self.q_batch(np.asarray(z, dtype=np.float64)[None])[0]
 
     def q_jacobian(self, z):
-        """dq/dz (rB, m) = offset + sum_C w_e P_e (db/dy)_e (QW)_e (analytic, SPEC section 4)."""
+        """dq/dz (rB, m) = A + sum_C w_e P_e (dr/dy)_e (QW)_e (analytic, SPEC section 4)."""
         return self.q_jacobian_batch(np.asarray(z, dtype=np.float64)[None])[0]
 
     def q_gradient(self, z, g):
@@ -585,11 +611,13 @@ class ReducedRS:
         ``q_jacobian``'s O(rB C m) (the dynamics' Newton iterations after the first)."""
         y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])
         _, R, J_l, EF = _rs_map(y, True)
-        lam = (np.asarray(g, dtype=np.float64) @ self._weighted).reshape(-1, 9)   # (C, 9)
+        g = np.asarray(g, dtype=np.float64)
+        lam = (g.astype(self.dtype, copy=False) @ self._weighted).reshape(-1, 9)  # (C, 9)
+        lam = lam.astype(np.float64, copy=False)
         g_omega = np.einsum("nj,nji->ni", np.einsum("nk,nkj->nj", lam, EF), J_l)
         g_eps = np.einsum("nk,nkj->nj", lam, (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6))
-        g_y = np.concatenate([g_omega, g_eps], axis=1).reshape(-1)
-        return g @ self._offset + g_y @ self._modal_rs_flat
+        g_y = np.concatenate([g_omega, g_eps], axis=1) - lam @ LINEAR_TARGET   # d r/dy, not db/dy
+        return g @ self.linear_map + g_y.reshape(-1) @ self._modal_rs_flat
 
     def q_batch(self, Z, chunk=256):
         """q for many frames: Z (F, m) -> (F, rB); frames are processed ``chunk`` at a time."""
@@ -597,7 +625,8 @@ class ReducedRS:
         out = np.empty((len(Z), self.basis_size))
         for start in range(0, len(Z), chunk):                       # bounds temporary memory
             Zc = Z[start:start + chunk]
-            out[start:start + chunk] = self._targets(Zc) @ self._weighted.T + Zc @ self._offset.T
+            out[start:start + chunk] = (self._lowered(self._targets(Zc)) @ self._weighted.T
+                                        + Zc @ self.linear_map.T)
         return out
 
     def q_jacobian_batch(self, Z, chunk=64):
@@ -605,8 +634,9 @@ class ReducedRS:
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         out = np.empty((len(Z), self.basis_size, self.num_coords))
         for start in range(0, len(Z), chunk):
-            out[start:start + chunk] = self._weighted @ self._chains(Z[start:start + chunk])
-        return out + self._offset
+            out[start:start + chunk] = self._weighted @ self._lowered(
+                self._chains(Z[start:start + chunk]))
+        return out + self.linear_map
 
     def exact_q(self, z):
         """All-tet reduced fit (rB,) of z (m,), no cubature (training and tests).
@@ -643,22 +673,43 @@ class ReducedRS:
         return (Z @ self._modal_rs_flat.T).reshape(-1, 9)
 
     def _targets(self, Z):
-        """vec b (F, 9C) of poses Z (F, m) at the cubature tets."""
-        return _rs_map(self._rs_coordinates(Z), False).reshape(len(Z), -1)
+        """vec r (F, 9C), the remainders of poses Z (F, m) at the cubature tets."""
+        return fast_remainders(self._rs_coordinates(Z)).reshape(len(Z), -1)
 
     def _chains(self, Z):
-        """(db/dy)(QW) (F, 9C, m) at the cubature tets for poses Z (F, m)."""
+        """(dr/dy)(QW) (F, 9C, m) at the cubature tets for poses Z (F, m)."""
         return self._targets_and_chains(Z)[1]
 
     def _targets_and_chains(self, Z):
-        """vec b (F, 9C) and (db/dy)(QW) (F, 9C, m), sharing the rotations."""
-        F, m = len(Z), self.num_coords
-        target, R, J_l, EF = _rs_map(self._rs_coordinates(Z), True)
-        C = len(self.cubature_tets)
+        """vec r (F, 9C) and (dr/dy)(QW) (F, 9C, m), sharing the rotations."""
+        y = self._rs_coordinates(Z)
+        target, R, J_l, EF = _rs_map(y, True)
+        return ((target - y @ LINEAR_TARGET.T).reshape(len(Z), -1),
+                self._remainder_chains(len(Z), R, J_l, EF))
+
+    def _remainder_chains(self, F, R, J_l, EF):
+        """(dr/dy)(QW) (F, 9C, m) from ``_rs_map``'s R, J_l, EF of F poses."""
+        C, m = len(self.cubature_tets), self.num_coords
         chain = (R.reshape(F, C, 3, 3) @ self._strain_rate).reshape(F, C, 9, m)
         spatial = J_l.reshape(F, C, 3, 3) @ self._omega_rate                # J_l d omega/dz
         chain += EF.reshape(F, C, 9, 3) @ spatial
-        return target.reshape(F, -1), chain.reshape(F, -1, m)
+        return chain.reshape(F, -1, m) - self._linear_chain
+
+    def q_batch_and_jacobian(self, Z, at):
+        """q (F, rB) of poses Z (F, m) and dq/dz (rB, m) at pose Z[at], from one product with
+        the weighted projections (they are read once for both; the dynamics' first Newton
+        iterate is one of the poses its integrator evaluates)."""
+        Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
+        F = len(Z)
+        columns = np.empty((9 * len(self.cubature_tets), F + self.num_coords), dtype=self.dtype)
+        columns[:, :F] = self._targets(Z).T
+        columns[:, F:] = self._chains(Z[at:at + 1])[0]      # the RS map's derivatives of one pose
+        product = self._weighted @ columns
+        return product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
+
+    def _lowered(self, values):
+        """values in this deformer's dtype (no copy in float64)."""
+        return values.astype(self.dtype, copy=False)
 
     # -- cache --------------------------------------------------------------------------------
 
@@ -741,8 +792,8 @@ class RowEvaluator:
 
     rows: e.g. ``basis_rows(B, J)`` or (Phi B) restricted to some render vertices. When
     3k < rB the rows are folded into the weighted projections once, R = rows (w P) (3k, 9C),
-    so an evaluation is u_J = R vec(b) + (rows offset) z and d u_J/dz = R (db/dy)(QW) + rows
-    offset, never forming q; otherwise it goes through q (rB,) and dq/dz. Batch methods take
+    so an evaluation is u_J = R vec(r) + (rows A) z and d u_J/dz = R (dr/dy)(QW) + rows A,
+    never forming q; otherwise it goes through q (rB,) and dq/dz. Batch methods take
     Z (F, m).
     """
 
@@ -752,7 +803,7 @@ class RowEvaluator:
         self.fused = isinstance(deformer, ReducedRS) and len(self.rows) < deformer.basis_size
         if self.fused:
             self._folded = self.rows @ deformer._weighted                        # (3k, 9C)
-            self._offset = self.rows @ deformer._offset                          # (3k, m)
+            self._linear = self.rows @ deformer.linear_map                       # (3k, m)
 
     def displacement(self, z):
         """u_J (k, 3) [m] of z (m,)."""
@@ -769,8 +820,8 @@ class RowEvaluator:
         if not self.fused:
             return self.displacement_batch(Z), self.jacobian_batch(Z)
         target, chain = self.deformer._targets_and_chains(Z)
-        u = target @ self._folded.T + Z @ self._offset.T
-        return u.reshape(len(Z), -1, 3), self._folded @ chain + self._offset
+        u = target @ self._folded.T + Z @ self._linear.T
+        return u.reshape(len(Z), -1, 3), self._folded @ chain + self._linear
 
     def jacobian(self, z):
         """d vec(u_J) / dz (3k, m) [m per unit z]."""
@@ -780,7 +831,7 @@ class RowEvaluator:
         """u_J (F, k, 3) of Z (F, m)."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         if self.fused:
-            u = self.deformer._targets(Z) @ self._folded.T + Z @ self._offset.T
+            u = self.deformer._targets(Z) @ self._folded.T + Z @ self._linear.T
         else:
             u = self.deformer.q_batch(Z) @ self.rows.T
         return u.reshape(len(Z), -1, 3)
@@ -789,7 +840,7 @@ class RowEvaluator:
         """d vec(u_J) / dz (F, 3k, m) of Z (F, m)."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         if self.fused:
-            return self._folded @ self.deformer._chains(Z) + self._offset
+            return self._folded @ self.deformer._chains(Z) + self._linear
         return self.rows @ self.deformer.q_jacobian_batch(Z)
 
 
@@ -1014,7 +1065,7 @@ def _tet_columns(projection, modal_rs, Z, tets, scale, out):
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
     y = rs.warp_pose_block(modal_rs[tets], Z)                             # (k, 9, F)
     y = y.transpose(0, 2, 1).reshape(-1, 9)
-    r = (fast_targets(y) - y @ LINEAR_TARGET.T).reshape(len(tets), len(Z), 9)
+    r = fast_remainders(y).reshape(len(tets), len(Z), 9)
     cols = out.T.reshape(len(tets), len(Z), -1)     # a view: out's columns are contiguous
     np.matmul(r, P.transpose(0, 2, 1), out=cols)                          # (k, F, rB)
     cols /= scale[None, :, None]

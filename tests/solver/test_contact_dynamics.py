@@ -176,7 +176,8 @@ def test_free_step_gradient_matches_finite_differences(free_cube, integrator):
     rng = np.random.default_rng(5)
     contact = random_quadratic(free_cube, rng, 50.0)
     sim = simulation(free_cube, 1.0 / 24.0, gravity=GRAVITY, free=True, contact=contact,
-                     mass_damping=0.5, stiffness_damping=0.01, integrator=integrator)
+                     mass_damping=0.5, stiffness_damping=0.01, integrator=integrator,
+                     dtype=np.float64)        # q smooth to round-off for the differences
     s0 = 0.2 * rng.normal(size=6)
     sim.set_state(s0, linear_velocity=[0.3, 0.0, 0.1], angular_velocity=[0.5, 1.0, -0.2])
     sim.step()
@@ -218,7 +219,7 @@ def test_pinned_step_gradient_matches_finite_differences(pinned_bar):
                                                                       [0.3, 0, 0.6]])),
                                 [[0, 0, 0], [0.1, 0.2, 0.0]])
     sim = simulation(pinned_bar, 1.0 / 24.0, gravity=GRAVITY, frame_motion=motion,
-                     contact=contact)
+                     contact=contact, dtype=np.float64)
     R, c = motion(0.3)
     base = sim._inertia(sim.scheme.plan(sim, (R, c)), (R, c))
     model = body_contact.ContactInertia(base, sim.contact, R, c)

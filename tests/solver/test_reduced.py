@@ -318,6 +318,53 @@ def test_batches_equal_stacked_single_evaluations(bar):
     assert column_errors(J[5], fd).max() <= 1e-5
 
 
+def test_single_precision_rounds_only_the_nonlinear_part(bar):
+    """``astype(float32)`` (the dynamics' deformer): its products act on the RS remainder alone,
+    so q and dq/dz stay exact at rest and their rounding is a float32-sized fraction of the
+    nonlinear part (q - A z, dq/dz - A) at small and large poses; ``q_gradient`` stays the
+    transpose product of its own Jacobian."""
+    deformer = bar["deformer"]
+    single = deformer.astype(np.float32)
+    assert single.dtype == np.float32 and single._weighted.dtype == np.float32
+    assert deformer.astype(np.float64) is deformer and single.astype(np.float32) is single
+    A = deformer.linear_map
+    rest = np.zeros(NUM_MODES)
+    assert np.array_equal(single.q_jacobian(rest), A) and not single.q(rest).any()
+    rng = np.random.default_rng(21)
+    poses = bar["info"]["cubature_poses"]
+    for z in (1e-3 * poses[30], poses[40], poses[5]):
+        nonlinear_q = np.abs(deformer.q(z) - A @ z).max()
+        J = deformer.q_jacobian(z)
+        nonlinear_J = np.abs(J - A).max()
+        q_error = np.abs(single.q(z) - deformer.q(z)).max() / nonlinear_q
+        J_error = np.abs(single.q_jacobian(z) - J).max() / nonlinear_J
+        g = rng.normal(size=deformer.basis_size)
+        g_error = (np.abs(single.q_gradient(z, g) - single.q_jacobian(z).T @ g).max()
+                   / np.abs((J - A).T @ g).max())
+        print(f"float32 against float64, relative to the nonlinear part: q {q_error:.1e}, "
+              f"dq/dz {J_error:.1e}, (dq/dz)^T g {g_error:.1e}")
+        assert nonlinear_q > 0 and q_error < 1e-6 and J_error < 1e-5 and g_error < 1e-5
+        assert q_error > 0                     # it did compute in float32
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_q_batch_and_jacobian_equal_the_separate_evaluations(bar, dtype):
+    """The integrator's fused evaluation (q at several poses and dq/dz at one of them from one
+    product): the same values as ``q_batch`` and ``q_jacobian`` (to round-off in float64,
+    within float32's rounding of the nonlinear part in float32)."""
+    deformer = bar["deformer"].astype(dtype)
+    exact = bar["deformer"]
+    Z = bar["info"]["cubature_poses"][:5]
+    for at in (0, 2, 4):
+        Q, J = deformer.q_batch_and_jacobian(Z, at)
+        assert Q.shape == (5, deformer.basis_size) and J.shape == (deformer.basis_size, NUM_MODES)
+        nonlinear_q = np.abs(exact.q_batch(Z) - Z @ exact.linear_map.T).max()
+        nonlinear_J = np.abs(exact.q_jacobian(Z[at]) - exact.linear_map).max()
+        tolerance = 1e-12 if dtype == np.float64 else 1e-5
+        assert np.abs(Q - deformer.q_batch(Z)).max() <= tolerance * nonlinear_q
+        assert np.abs(J - deformer.q_jacobian(Z[at])).max() <= tolerance * nonlinear_J
+
+
 def test_fast_targets_match_rs_module():
     rng = np.random.default_rng(5)
     angles = np.array([0.0, 1e-9, 1e-5, 5e-3, 1e-2 - 1e-9, 1e-2 + 1e-9, 0.3, 1.0, 2.5, np.pi,
