@@ -118,7 +118,7 @@ class StepSolver:
                 if not small and self.geometric is not None:
                     step = newton_step(gauss_newton + self.geometric(s, gq), grad, step)
             s_new, q_new, f_new = self._line_search(model, s, f, step, float(grad @ step),
-                                                    damping)
+                                                    damping, small)
             if s_new is None:                      # no decrease possible: at round-off level
                 break
             s, q, f = s_new, q_new, f_new
@@ -137,10 +137,14 @@ class StepSolver:
         moved = J @ step
         return float(moved @ (self.mass_matrix @ moved))
 
-    def _line_search(self, model, s, f, step, slope, damping):
-        """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None)."""
+    def _line_search(self, model, s, f, step, slope, damping, converged=False):
+        """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None).
+
+        converged: the step is below the tolerance, so its decrease can be below the rounding
+        of f (the deformer's float32 products round q to ~1e-7 of its nonlinear part): it is
+        tried whole, once, and not halved against that noise (the iterate is converged)."""
         alpha = 1.0
-        for _ in range(MAX_HALVINGS):
+        for _ in range(1 if converged else MAX_HALVINGS):
             s_try = s + alpha * step
             q_try = self.deformer.q(s_try)
             f_try = self.objective(model, s_try, q_try, damping)
@@ -275,9 +279,7 @@ class GeometricStiffness:
     """
 
     def __init__(self, deformer):
-        weighted = deformer.cubature_weights[:, None, None] * deformer.projections  # (C, rB, 9)
-        self.weighted = np.ascontiguousarray(weighted.transpose(1, 0, 2).reshape(
-            deformer.basis_size, -1))                                          # (rB, 9C)
+        self.weighted = deformer.weighted_projections                          # (rB, 9C)
         self.U = deformer.modal_rs_cubature                                    # (C, 9, m)
         self.flat = self.U.reshape(-1, self.U.shape[2])
 
@@ -289,7 +291,8 @@ class GeometricStiffness:
         K = rs.skew(omega)
         K2 = K @ K
         S = (y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + np.eye(3)
-        lam = (g @ self.weighted).reshape(n, 3, 3)
+        lam = (g.astype(self.weighted.dtype, copy=False) @ self.weighted).reshape(n, 3, 3)
+        lam = lam.astype(np.float64, copy=False)
         G = np.zeros((n, 9, 9))
         G[:, :3, :3] = self._omega_omega(omega, lam @ S, a, b, c, d, e, f)
         G[:, :3, 3:] = self._omega_eps(omega, K, K2, lam, a, b, c, d)

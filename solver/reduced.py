@@ -528,6 +528,7 @@ class ReducedRS:
       projections          P_C (C, rB, 9) for the cubature tets only.
       modal_rs_cubature    (C, 9, m) linear RS of the modes on the cubature tets.
       linear_map           A (rB, m).
+      weighted_projections (w P) (rB, 9C): [w_e P_e]_e side by side, in dtype.
       dtype                of the (w P) products: float64, or what ``astype`` gave.
 
     ``exact_q`` (the all-tet fit) needs the full mesh: it works on objects made by ``build``
@@ -551,7 +552,7 @@ class ReducedRS:
         # act on the remainder r alone, so in float32 (``astype``) their rounding is relative
         # to the nonlinear part: small poses and the Jacobian at rest stay exact.
         self.dtype = np.dtype(dtype)
-        self._weighted = np.ascontiguousarray(
+        self.weighted_projections = np.ascontiguousarray(
             (self.cubature_weights[:, None, None] * self.projections)
             .transpose(1, 0, 2).reshape(self.basis_size, -1), dtype=self.dtype)
         self._linear_chain = np.einsum("ij,cjm->cim", LINEAR_TARGET,
@@ -612,8 +613,8 @@ class ReducedRS:
         y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])
         _, R, J_l, EF = _rs_map(y, True)
         g = np.asarray(g, dtype=np.float64)
-        lam = (g.astype(self.dtype, copy=False) @ self._weighted).reshape(-1, 9)  # (C, 9)
-        lam = lam.astype(np.float64, copy=False)
+        lam = self._lowered(g) @ self.weighted_projections                         # (9C,)
+        lam = lam.astype(np.float64, copy=False).reshape(-1, 9)
         g_omega = np.einsum("nj,nji->ni", np.einsum("nk,nkj->nj", lam, EF), J_l)
         g_eps = np.einsum("nk,nkj->nj", lam, (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6))
         g_y = np.concatenate([g_omega, g_eps], axis=1) - lam @ LINEAR_TARGET   # d r/dy, not db/dy
@@ -625,7 +626,8 @@ class ReducedRS:
         out = np.empty((len(Z), self.basis_size))
         for start in range(0, len(Z), chunk):                       # bounds temporary memory
             Zc = Z[start:start + chunk]
-            out[start:start + chunk] = (self._lowered(self._targets(Zc)) @ self._weighted.T
+            remainders = self._lowered(self._targets(Zc))
+            out[start:start + chunk] = (remainders @ self.weighted_projections.T
                                         + Zc @ self.linear_map.T)
         return out
 
@@ -634,7 +636,7 @@ class ReducedRS:
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         out = np.empty((len(Z), self.basis_size, self.num_coords))
         for start in range(0, len(Z), chunk):
-            out[start:start + chunk] = self._weighted @ self._lowered(
+            out[start:start + chunk] = self.weighted_projections @ self._lowered(
                 self._chains(Z[start:start + chunk]))
         return out + self.linear_map
 
@@ -704,7 +706,7 @@ class ReducedRS:
         columns = np.empty((9 * len(self.cubature_tets), F + self.num_coords), dtype=self.dtype)
         columns[:, :F] = self._targets(Z).T
         columns[:, F:] = self._chains(Z[at:at + 1])[0]      # the RS map's derivatives of one pose
-        product = self._weighted @ columns
+        product = self.weighted_projections @ columns
         return product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
 
     def _lowered(self, values):
@@ -802,7 +804,7 @@ class RowEvaluator:
         self.rows = np.ascontiguousarray(rows, dtype=np.float64)
         self.fused = isinstance(deformer, ReducedRS) and len(self.rows) < deformer.basis_size
         if self.fused:
-            self._folded = self.rows @ deformer._weighted                        # (3k, 9C)
+            self._folded = self.rows @ deformer.weighted_projections             # (3k, 9C)
             self._linear = self.rows @ deformer.linear_map                       # (3k, m)
 
     def displacement(self, z):

@@ -325,7 +325,7 @@ def test_single_precision_rounds_only_the_nonlinear_part(bar):
     transpose product of its own Jacobian."""
     deformer = bar["deformer"]
     single = deformer.astype(np.float32)
-    assert single.dtype == np.float32 and single._weighted.dtype == np.float32
+    assert single.dtype == np.float32 and single.weighted_projections.dtype == np.float32
     assert deformer.astype(np.float64) is deformer and single.astype(np.float32) is single
     A = deformer.linear_map
     rest = np.zeros(NUM_MODES)
