@@ -46,6 +46,19 @@ MAX_SUBSTEPS = 1000        # largest user override
 SINGLE_PRECISION_TOLERANCE = 1e-6   # Newton tolerances from here up run the cubature in float32
 
 
+def step_deformer(deformer, tolerance=1e-5, dtype=None):
+    """The deformer a ``Simulation`` with this Newton ``tolerance`` and ``dtype`` steps with
+    (its docstring): a step is mostly the cubature's (rB, 9C) products, and in float32 they
+    take half as long (``reduced.ReducedRS.astype``). Potentials that evaluate q themselves
+    (``inversion.ReconstructionBarrier``, ``rig.HeldPotential``) should get this same object:
+    it keeps the last pose's q and dq/dz for them. A deformer without ``astype`` as it is."""
+    astype = getattr(deformer, "astype", None)
+    if astype is None:
+        return deformer
+    single = dtype is None and tolerance >= SINGLE_PRECISION_TOLERANCE
+    return astype(np.float32 if single else (dtype or np.float64))
+
+
 class InversionError(RuntimeError):
     """Raised by ``Simulation.step`` when a step inverts tets even when cut to its smallest.
 
@@ -212,12 +225,7 @@ class Simulation:
                  sample_placement=None, dtype=None):
         _check_arguments(deformer, h, mass_damping, stiffness_damping, free, frame_motion,
                          substeps, contact, external_force, sample_placement)
-        # A step is mostly the cubature's (rB, 9C) products: in float32 they take half as long
-        # (``reduced.ReducedRS.astype``), their rounding far inside the Newton tolerance.
-        astype = getattr(deformer, "astype", None)
-        if astype is not None:
-            single = dtype is None and tolerance >= SINGLE_PRECISION_TOLERANCE
-            deformer = astype(np.float32 if single else (dtype or np.float64))
+        deformer = step_deformer(deformer, tolerance, dtype)
         self.scheme = integrators.scheme(integrator)
         self.integrator = self.scheme.name
         self.deformer, self.potential, self.external_force = deformer, potential, external_force

@@ -239,13 +239,14 @@ def simulation(body, potential, settings, frame_motion=None, contact=None, exter
     external_force, sample_placement: a rig's loads and contact placement (``dynamics``);
     follow_stiffness: (N,) a rig's springs holding the flesh to the bones (``rig``).
     """
+    deformer = dynamics.step_deformer(body.deformer)      # one object for the steps and terms
     potential = inversion.with_barrier(potential, body.modal_rs, body.volumes)
     if follow_stiffness is not None:
-        potential = rig.HeldPotential(potential, body.deformer, follow_stiffness)
-    potential = inversion.with_reconstruction_barrier(potential, body.deformer, body.nodes,
+        potential = rig.HeldPotential(potential, deformer, follow_stiffness)
+    potential = inversion.with_reconstruction_barrier(potential, deformer, body.nodes,
                                                       body.tets)
     return dynamics.Simulation(
-        body.deformer, body.nodes, body.lumped_masses(settings.density), potential, settings.h,
+        deformer, body.nodes, body.lumped_masses(settings.density), potential, settings.h,
         gravity=settings.gravity, mass_damping=settings.damping_mass,
         stiffness_damping=settings.damping_stiffness, free=len(body.pinned_nodes) == 0,
         frame_motion=frame_motion, integrator=settings.integrator, substeps=settings.substeps,

@@ -565,6 +565,7 @@ class ReducedRS:
             "ckm,kts->ctsm", self.modal_rs_cubature[:, 3:, :], rs.STRAIN_BASIS)
             .reshape(-1, 3, 3 * m))
         self._projection, self._modal_rs = projection, modal_rs
+        self._kept_q = self._kept_jacobian = None
 
     @classmethod
     def build(cls, X, T, modal_rs, B, recon, cubature_tets, cubature_weights, projection=None):
@@ -599,12 +600,28 @@ class ReducedRS:
     # -- evaluation ---------------------------------------------------------------------------
 
     def q(self, z):
-        """Reduced coordinates q (rB,) of modal coordinates z (m,) (class docstring)."""
-        return self.q_batch(np.asarray(z, dtype=np.float64)[None])[0]
+        """Reduced coordinates q (rB,) of modal coordinates z (m,) (class docstring).
+
+        The last pose's q and dq/dz are kept (``_kept``): a simulation's potentials (the
+        reconstruction barrier, a rig's springs) ask for them at the pose its Newton iteration
+        has just evaluated, with the same deformer (``dynamics.step_deformer``)."""
+        z = np.asarray(z, dtype=np.float64)
+        return self._kept("_kept_q", z, lambda: self.q_batch(z[None])[0])
 
     def q_jacobian(self, z):
         """dq/dz (rB, m) = A + sum_C w_e P_e (dr/dy)_e (QW)_e (analytic, SPEC section 4)."""
-        return self.q_jacobian_batch(np.asarray(z, dtype=np.float64)[None])[0]
+        z = np.asarray(z, dtype=np.float64)
+        return self._kept("_kept_jacobian", z, lambda: self.q_jacobian_batch(z[None])[0])
+
+    def _kept(self, name, z, evaluate):
+        """evaluate() at pose z, or a copy of what was kept for z under ``name``. One
+        (pose, value) tuple, replaced whole: a reader never pairs one pose with another's."""
+        kept = getattr(self, name)
+        if kept is not None and np.array_equal(kept[0], z):
+            return kept[1].copy()
+        value = evaluate()
+        setattr(self, name, (z.copy(), value.copy()))
+        return value
 
     def q_gradient(self, z, g):
         """(dq/dz)^T g (m,) for g (rB,) without forming dq/dz: g goes back through the
@@ -707,7 +724,9 @@ class ReducedRS:
         columns[:, :F] = self._targets(Z).T
         columns[:, F:] = self._chains(Z[at:at + 1])[0]      # the RS map's derivatives of one pose
         product = self.weighted_projections @ columns
-        return product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
+        Q, J = product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
+        self._kept_q, self._kept_jacobian = (Z[at].copy(), Q[at].copy()), (Z[at].copy(), J.copy())
+        return Q, J
 
     def _lowered(self, values):
         """values in this deformer's dtype (no copy in float64)."""

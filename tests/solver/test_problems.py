@@ -160,6 +160,10 @@ def test_a_free_body_falls_as_free_fall_says(bar):
     t = 12 / 24.0
     print(f"drop {drop[2]:.6f} m, free fall {-0.5 * 9.81 * t ** 2:.6f} m")
     np.testing.assert_allclose(drop, [0.0, 0.0, -0.5 * 9.81 * t ** 2], rtol=1e-6, atol=1e-9)
+    # the reconstruction barrier evaluates q with the simulation's own (float32) deformer,
+    # which keeps the pose Newton has just evaluated for it
+    assert sim.potential.barrier.deformer is sim.deformer
+    assert sim.deformer.dtype == np.float32 and free.deformer.dtype == np.float64
 
 
 def test_a_pinned_bar_settles_where_the_full_static_solution_puts_its_tip(bar):

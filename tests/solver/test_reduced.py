@@ -347,6 +347,28 @@ def test_single_precision_rounds_only_the_nonlinear_part(bar):
         assert q_error > 0                     # it did compute in float32
 
 
+def test_the_last_pose_is_kept_and_only_that_pose(bar, monkeypatch):
+    """q and dq/dz of the last pose asked (or of the fused evaluation's pose) come back without
+    a product; another pose is evaluated afresh; what a caller does to a returned array does
+    not reach what is kept."""
+    deformer = bar["deformer"].astype(np.float32)        # a fresh object: nothing kept yet
+    Z = bar["info"]["cubature_poses"][:4]
+    q0, J0 = deformer.q_batch(Z[1:2])[0], deformer.q_jacobian_batch(Z[1:2])[0]
+    Q, J = deformer.q_batch_and_jacobian(Z, 1)
+    monkeypatch.setattr(deformer, "q_batch", lambda *a, **k: pytest.fail("q recomputed"))
+    monkeypatch.setattr(deformer, "q_jacobian_batch", lambda *a, **k: pytest.fail("J recomputed"))
+    q, Jk = deformer.q(Z[1].copy()), deformer.q_jacobian(Z[1].copy())
+    assert np.array_equal(q, Q[1]) and np.array_equal(Jk, J)
+    q[:] = 0.0
+    Jk[:] = 0.0
+    assert np.array_equal(deformer.q(Z[1]), Q[1]) and np.array_equal(deformer.q_jacobian(Z[1]), J)
+    monkeypatch.undo()
+    np.testing.assert_allclose(Q[1], q0, rtol=0, atol=1e-5 * np.abs(q0).max())
+    np.testing.assert_allclose(J, J0, rtol=0, atol=1e-5 * np.abs(J0).max())
+    assert np.array_equal(deformer.q(Z[2]), deformer.q_batch(Z[2:3])[0])   # another pose
+    assert np.array_equal(deformer.q_jacobian(Z[3]), deformer.q_jacobian_batch(Z[3:4])[0])
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_q_batch_and_jacobian_equal_the_separate_evaluations(bar, dtype):
     """The integrator's fused evaluation (q at several poses and dq/dz at one of them from one
