@@ -224,9 +224,14 @@ def test_a_three_body_shot_bakes_as_on_the_command_line_and_survives_a_killed_wo
     try:
         # Kill the worker (and its Blender) in the middle of Drop's task, then start it again:
         # the manager hands the unfinished task back to it, and it bakes Drop from the start.
+        # The kill waits for Drop's Blender to run, not for a fixed time: a bake can take less
+        # than any fixed wait.
         flamenco_farm.wait_for_task(farm.manager, job["id"], "bake Drop", ("active",),
                                     timeout=JOB_TIMEOUT)
-        time.sleep(1.5)
+        deadline = time.monotonic() + JOB_TIMEOUT
+        while not blender_processes(blend) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert blender_processes(blend), "Drop's task never started Blender"
         assert flamenco_farm.tasks(farm.manager, job["id"])["bake Drop"]["status"] == "active"
         assert not (bakes_folder(blend) / files["Drop"]).exists()
         farm.worker.kill()
