@@ -101,14 +101,16 @@ def _series_entries(omega, strain, i, k):
 
 
 SNAPSHOT_CHUNK = 16    # poses whose RS coordinates one product makes (rs_snapshots)
+SNAPSHOT_BATCH = 8     # poses per batched Poisson solve: fixed, so results are too
 
 
 def rs_snapshots(modal_rs, recon, Z, progress=None):
     """Full RS displacements (3N, S) [m] of poses Z (S, m): recon.reconstruct(modal_rs z).
 
-    The poses of a chunk are split over several threads (``threads.ordered_map``), each
-    solving its share in one batched Poisson solve (``recon.solve_batch``, the factor of
-    ``recon`` reused); pins hold exactly.
+    The poses of a chunk are solved in batches of SNAPSHOT_BATCH on several threads
+    (``threads.ordered_map``), one batched Poisson solve each (``recon.solve_batch``, the
+    factor of ``recon`` reused; the batches do not depend on the thread count, nor then does
+    the result); pins hold exactly.
     """
     Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
     out = np.empty((3 * recon.num_nodes, len(Z)))
@@ -121,7 +123,7 @@ def rs_snapshots(modal_rs, recon, Z, progress=None):
                                      f"of {len(Z)}")
         Y = modal_rs_poses(modal_rs, Z[start:start + count],
                            out=poses[:count]).reshape(count, n_tets, 9)
-        parts = threads.even_parts(count)
+        parts = threads.fixed_parts(count, SNAPSHOT_BATCH)
         # Targets pose by pose, as they are solved (a generator: one target per thread in
         # memory; 8 poses' targets at once ran 40 % slower), then one batched solve per thread.
         solved = threads.ordered_map(lambda part: recon.solve_batch(
@@ -188,7 +190,7 @@ def second_order_basis(X, T, masses, modal_rs, recon, modes_W, max_size=120, dro
 
 
 REFERENCE_ANGLE = 0.5 * np.pi   # rotation [rad] at which basis candidates are ranked
-CANDIDATE_BATCH = 8             # basis candidates per thread solved at once (24 right-hand sides)
+CANDIDATE_BATCH = 8             # basis candidates solved at once (24 right-hand sides)
 BATCH_MEMORY = 256 * 2 ** 20    # bytes of candidate targets (72 per tet) held at once, at most
 
 
@@ -199,7 +201,7 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
     kept (a cheap screen: Psi is a least-squares fit, so a small target cannot give a large
     displacement); keep None keeps them all. Each target is built once: a term is solved when
     it enters the running top ``keep`` (and still holds its column at the end of its batch of
-    CANDIDATE_BATCH terms per thread, fewer where they would pass BATCH_MEMORY) and its column
+    MAX_WORKERS x CANDIDATE_BATCH terms, fewer where they would pass BATCH_MEMORY) and its column
     dropped when a larger one displaces it (screening first would build every kept target
     twice, which costs more than the few solves of terms displaced later); memory stays
     ``keep`` columns of 3N plus a batch of targets.
@@ -228,12 +230,14 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
         flat = target.reshape(9, -1)
         return target, float(np.einsum("ke,ke->e", flat, flat) @ recon.volumes)
 
-    # Terms go in batches of CANDIDATE_BATCH per thread: their targets are built side by side,
-    # the running top ``keep`` is updated in term order (as one term at a time would), and the
-    # batch's terms that still hold a column are solved in one batched solve per thread.
-    workers = threads.worker_count()
-    per_thread = max(1, min(CANDIDATE_BATCH, BATCH_MEMORY // (72 * len(recon.volumes) * workers)))
-    batch = per_thread * workers
+    # Terms go in batches of MAX_WORKERS x CANDIDATE_BATCH: their targets are built side by
+    # side, the running top ``keep`` is updated in term order (as one term at a time would),
+    # and the batch's terms that still hold a column are solved CANDIDATE_BATCH at a time, one
+    # batched solve per part on the threads. Batches and parts are fixed, not per thread, so
+    # the result does not depend on the thread count.
+    per_part = max(1, min(CANDIDATE_BATCH,
+                          BATCH_MEMORY // (72 * len(recon.volumes) * threads.MAX_WORKERS)))
+    batch = per_part * threads.MAX_WORKERS
     for first in range(0, len(terms), batch):
         if progress is not None:
             progress(0.8 * first / len(terms), f"basis candidate {first + 1}/{len(terms)}")
@@ -246,7 +250,7 @@ def _series_candidates(modal_rs, recon, order, keep, progress):
         fresh = np.flatnonzero(np.isin(held_terms, numbers))      # slots taken in this batch
         solved = threads.ordered_map(lambda part: recon.solve_batch(
             [built[n][0] for n in held_terms[fresh[part]]], entry_major=True),
-            threads.even_parts(len(fresh)))
+            threads.fixed_parts(len(fresh), per_part))
         for slot, u in zip(fresh, (u for part in solved for u in part)):
             columns[:, slot] = u.reshape(-1)
     used = held_terms >= 0

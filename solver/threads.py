@@ -52,9 +52,17 @@ def even_parts(count, workers=None):
     return [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
 
 
+def fixed_parts(count, size):
+    """range(count) as consecutive slices of ``size`` (the last one shorter). For batches whose
+    rounding can depend on their size (a batched SuperLU solve of several right-hand sides,
+    whose BLAS kernels differ with the column count): parts that do not depend on the number
+    of threads give the same result on any."""
+    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+
+
 def row_blocks(count):
     """range(count) as consecutive slices of ROW_BLOCK (the last one shorter)."""
-    return [slice(start, min(start + ROW_BLOCK, count)) for start in range(0, count, ROW_BLOCK)]
+    return fixed_parts(count, ROW_BLOCK)
 
 
 def matmul(A, B, out=None):
