@@ -279,7 +279,7 @@ class GeometricStiffness:
     """
 
     def __init__(self, deformer):
-        self.weighted = deformer.weighted_projections                          # (rB, 9C)
+        self.weighted = deformer.weighted_projections            # (rB, 9C), entry-major
         self.U = deformer.modal_rs_cubature                                    # (C, 9, m)
         self.flat = self.U.reshape(-1, self.U.shape[2])
 
@@ -291,8 +291,8 @@ class GeometricStiffness:
         K = rs.skew(omega)
         K2 = K @ K
         S = (y[:, 3:] @ rs.STRAIN_BASIS.reshape(6, 9)).reshape(n, 3, 3) + np.eye(3)
-        lam = (g.astype(self.weighted.dtype, copy=False) @ self.weighted).reshape(n, 3, 3)
-        lam = lam.astype(np.float64, copy=False)
+        lam = g.astype(self.weighted.dtype, copy=False) @ self.weighted   # (9C,) entry-major
+        lam = lam.astype(np.float64, copy=False).reshape(9, n).T.reshape(n, 3, 3)
         G = np.zeros((n, 9, 9))
         G[:, :3, :3] = self._omega_omega(omega, lam @ S, a, b, c, d, e, f)
         G[:, :3, 3:] = self._omega_eps(omega, K, K2, lam, a, b, c, d)

@@ -346,70 +346,110 @@ def _append_snapshot_modes(basis, snapshots, m_diag, count, drop_tol):
 
 
 # ---------------------------------------------------------------------------------------------
-# Fast per-tet targets b(y) and Jacobians db/dy for the few cubature tets
+# Fast per-tet targets b(y) and their derivatives for the few cubature tets
+#
+# Entry-major: a quantity of n tets (or tets x poses) is laid out (9, n), one contiguous row per
+# entry of its 3 x 3 matrix (row-major vec), so every numpy operation runs on long rows; stacks
+# of n 3 x 3 products, or slices of (n, 9) rows, cost several times more for a few hundred
+# tets, where each call costs more than its arithmetic.
 
 # d vec(b) / dy at y = 0 (9, 9): b ~ [omega]x + eps, the linear part of the RS map.
 LINEAR_TARGET = np.concatenate([rs.skew(np.eye(3)).transpose(1, 2, 0).reshape(9, 3),
                                 rs.STRAIN_BASIS.transpose(1, 2, 0).reshape(9, 6)], axis=1)
-# vec(R E_k) = vec(R) @ _STRAIN_MAP[:, k::6]: the strain columns of db/dy, linear in R.
-_STRAIN_MAP = np.einsum("rq,kts->rtqsk", np.eye(3), rs.STRAIN_BASIS).reshape(9, 54)
-# omega (n, 3) @ _SKEW_MAP (3, 9) = vec(skew(omega)), row-major (exact: its entries are 0, +-1).
-_SKEW_MAP = np.ascontiguousarray(LINEAR_TARGET[:, :3].T)
-# omega[:, _OUTER_ROWS] * omega[:, _OUTER_COLS] = vec(omega omega^T).
+# vec([omega]x) = omega[_SKEW_INDEX] * _SKEW_SIGN (row-major: 0, -w2, w1, w2, 0, -w0, -w1, w0, 0)
+_SKEW_INDEX = np.array([0, 2, 1, 2, 0, 0, 1, 0, 0])
+_SKEW_SIGN = np.array([0.0, -1.0, 1.0, 1.0, 0.0, -1.0, -1.0, 1.0, 0.0])[:, None]
+# omega[_OUTER_ROWS] * omega[_OUTER_COLS] = vec(omega omega^T).
 _OUTER_ROWS, _OUTER_COLS = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
-_STRAIN_ENTRIES = np.ascontiguousarray(rs.STRAIN_BASIS.reshape(6, 9))
-_EYE9 = np.eye(3).reshape(9)
+# vec(eps) = eps6[_SYMMETRIC] for the six strain entries (xx, xy, xz, yy, yz, zz).
+_SYMMETRIC = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
+_DIAGONAL = slice(0, 9, 4)                               # rows of vec(M) on M's diagonal
+# <M, E_k> = M[_STRAIN_UPPER] + M[_STRAIN_LOWER], halved on the diagonal (vec M rows).
+_STRAIN_UPPER = np.array([3 * i + j for i, j in rs.STRAIN_INDEX])
+_STRAIN_LOWER = np.array([3 * j + i for i, j in rs.STRAIN_INDEX])
+_STRAIN_DIAGONAL = np.array([0, 3, 5])
 
 
-def _rs_map(y, jacobian):
-    """vec(b(y)) (n, 9); with ``jacobian`` also R (n, 3, 3), the left Jacobian J_l (n, 3, 3)
-    and EF (n, 9, 3), where EF[:, :, i] = vec(skew(e_i) F), F = I + b = R (I + eps).
+def _rs_map(y, jacobian, remainder=False):
+    """vec(b(y)) (9, n) of RS coordinates y (9, n), entry-major, or with ``remainder`` the
+    nonlinear remainder vec(r(y)) = vec(b(y) - [omega]x - eps); with ``jacobian`` also vec(R),
+    vec(J_l) and vec(F) (9, n) each: the rotation exp([omega]x), the left Jacobian of SO(3)
+    and F = I + b = R (I + eps).
 
-    Written for a few hundred tets per call, with few numpy operations (each costs more in
-    its call than in its arithmetic here), on rows of 9 entries. With
-    K^2 = omega omega^T - t^2 I: R = (1 - b t^2) I + a K + b omega omega^T, and likewise J_l.
-    Rotation derivative: dR/d omega_i = skew(J_l e_i) R (J_l is the left Jacobian of SO(3)),
-    so d vec(b)/d omega = EF J_l, and d vec(b)/d eps_k = vec(R E_k) (linear in R).
+    With K = [omega]x and K^2 = omega omega^T - t^2 I (t = |omega|):
+    R = (1 - b t^2) I + a K + b omega omega^T, J_l = (1 - e t^2) I + b K + e omega omega^T
+    (a, b, e: ``rs.rodrigues_coefficients``). Derivatives (``_remainder_chains``,
+    ``ReducedRS.q_gradient``): d vec(b) / d omega_i = vec([J_l e_i]x F) and
+    d vec(b) / d eps_k = vec(R E_k). Elementwise operations only: each tet's result is the
+    same to the last bit whatever else is in the call (the cubature's training splits its
+    tets over threads).
     """
-    n = len(y)
-    omega = y[:, :3]
-    t2 = np.einsum("ni,ni->n", omega, omega)
+    omega = y[:3]
+    t2 = omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2]
     a, b, e = rs.rodrigues_coefficients(t2)
-    K = omega @ _SKEW_MAP
-    outer = omega[:, _OUTER_ROWS] * omega[:, _OUTER_COLS]
-    R = (a[:, None] * K + b[:, None] * outer + (1.0 - b * t2)[:, None] * _EYE9).reshape(n, 3, 3)
-    F = R @ (y[:, 3:] @ _STRAIN_ENTRIES + _EYE9).reshape(n, 3, 3)
-    target = F.reshape(n, 9) - _EYE9
+    K = omega[_SKEW_INDEX] * _SKEW_SIGN
+    outer = omega[_OUTER_ROWS] * omega[_OUTER_COLS]
+    R = a * K
+    R += b * outer
+    R[_DIAGONAL] += 1.0 - b * t2
+    S = y[3:][_SYMMETRIC]
+    S[_DIAGONAL] += 1.0
+    n = y.shape[1]
+    R3, S3 = R.reshape(3, 3, n), S.reshape(3, 3, n)
+    F = R3[:, 0, None] * S3[0] + R3[:, 1, None] * S3[1] + R3[:, 2, None] * S3[2]
+    F = F.reshape(9, n)
+    if remainder:                                       # F - I - K - eps = F - K - S
+        target = F - K
+        target -= S
+    else:
+        target = F.copy() if jacobian else F
+        target[_DIAGONAL] -= 1.0
     if not jacobian:
         return target
-    J_l = (b[:, None] * K + e[:, None] * outer + (1.0 - e * t2)[:, None] * _EYE9).reshape(n, 3, 3)
-    # skew(e_i) F: rows of F, signed, moved (a cross product with e_i, no matmul)
-    EF = np.zeros((n, 9, 3))
-    EF[:, 3:6, 0], EF[:, 6:9, 0] = -F[:, 2], F[:, 1]
-    EF[:, 0:3, 1], EF[:, 6:9, 1] = F[:, 2], -F[:, 0]
-    EF[:, 0:3, 2], EF[:, 3:6, 2] = -F[:, 1], F[:, 0]
-    return target, R, J_l, EF
+    J_l = b * K
+    J_l += e * outer
+    J_l[_DIAGONAL] += 1.0 - e * t2
+    return target, R, J_l, F
 
 
 def fast_remainders(y):
-    """vec(r(y)) (n, 9) = vec(b(y)) - [omega]x - eps of RS coordinates y (n, 9), as
-    ``remainder_entries`` (row-major, for the few cubature tets)."""
-    return _rs_map(y, False) - y @ LINEAR_TARGET.T
+    """vec(r(y)) (9, n) = vec(b(y)) - [omega]x - eps of RS coordinates y (9, n), entry-major
+    (as ``remainder_entries``, for the few cubature tets)."""
+    return _rs_map(y, False, remainder=True)
 
 
 def fast_targets(y, jacobian=False):
     """vec(b(y)) (n, 9) as ``rs.rs_target``, and optionally d vec(b)/dy (n, 9, 9) as
-    ``rs.rs_target_jacobian``: the same quantities, computed by ``_rs_map`` (faster for the
-    few hundred cubature tets, and used by the deformer).
-    """
-    y = np.asarray(y, dtype=np.float64).reshape(-1, 9)
+    ``rs.rs_target_jacobian``, for y (n, 9): the same quantities, computed by ``_rs_map`` (the
+    deformer's map, faster for the few hundred cubature tets)."""
+    y = np.ascontiguousarray(np.asarray(y, dtype=np.float64).reshape(-1, 9).T)
     if not jacobian:
-        return _rs_map(y, False)
-    target, R, J_l, EF = _rs_map(y, True)
-    J = np.empty((len(y), 9, 9))
-    J[:, :, :3] = EF @ J_l
-    J[:, :, 3:] = (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6)
-    return target, J
+        return _rs_map(y, False).T
+    target, R, J_l, F = _rs_map(y, True)
+    n = y.shape[1]
+    J = np.empty((9, 9, n))                   # [row of vec(b), coordinate of y, tet]
+    for i in range(3):                        # d vec(b) / d omega_i = vec([J_l e_i]x F)
+        J[:, i] = _skew_times(J_l.reshape(3, 3, n)[:, i], F.reshape(3, 3, n)).reshape(9, n)
+    J[:, 3:] = _rotated_strains(R.reshape(3, 3, n)).reshape(9, 6, n)
+    return target.T, J.transpose(2, 0, 1)
+
+
+def _skew_times(s, F):
+    """[s]x F (3, 3, ...) for vectors s (3, ...) and matrices F (3, 3, ...) broadcast against
+    them (cross products of s with F's columns: no 3 x 3 stacks)."""
+    return np.stack([s[1] * F[2] - s[2] * F[1],
+                     s[2] * F[0] - s[0] * F[2],
+                     s[0] * F[1] - s[1] * F[0]])
+
+
+def _rotated_strains(R):
+    """R E_k (3, 3, 6, ...) for the six strain basis matrices E_k (``rs.STRAIN_BASIS``) and
+    rotations R (3, 3, ...): column j of R E_k is R's column i where E_k[i, j] = 1."""
+    out = np.zeros((3, 3, 6) + R.shape[2:])
+    for k, (i, j) in enumerate(rs.STRAIN_INDEX):
+        out[:, j, k] = R[:, i]
+        out[:, i, k] = R[:, j]
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -532,7 +572,8 @@ class ReducedRS:
       projections          P_C (C, rB, 9) for the cubature tets only.
       modal_rs_cubature    (C, 9, m) linear RS of the modes on the cubature tets.
       linear_map           A (rB, m).
-      weighted_projections (w P) (rB, 9C): [w_e P_e]_e side by side, in dtype.
+      weighted_projections (w P) (rB, 9C): w_e P_e, entry-major (column k C + e is entry k
+                           of tet e's 9), in dtype.
       dtype                of the (w P) products: float64, or what ``astype`` gave.
 
     ``exact_q`` (the all-tet fit) needs the full mesh: it works on objects made by ``build``
@@ -551,23 +592,25 @@ class ReducedRS:
         self.num_coords = self.modal_rs_cubature.shape[2]
         self.basis_size = self.projections.shape[1]
         m = self.num_coords
-        # Weighted projections flattened to (rB, 9C): q = A z + wP @ vec(r) over all cubature
-        # tets is one matrix-vector product, and the Jacobian one matrix-matrix product. They
-        # act on the remainder r alone, so in float32 (``astype``) their rounding is relative
-        # to the nonlinear part: small poses and the Jacobian at rest stay exact.
+        # Weighted projections flattened to (rB, 9C), entry-major (column k C + e: entry k of
+        # tet e, the layout of ``_rs_map``): q = A z + wP @ vec(r) over all cubature tets is one
+        # matrix-vector product, and the Jacobian one matrix-matrix product. They act on the
+        # remainder r alone, so in float32 (``astype``) their rounding is relative to the
+        # nonlinear part: small poses and the Jacobian at rest stay exact.
         self.dtype = np.dtype(dtype)
+        C = len(self.cubature_tets)
         self.weighted_projections = np.ascontiguousarray(
             (self.cubature_weights[:, None, None] * self.projections)
-            .transpose(1, 0, 2).reshape(self.basis_size, -1), dtype=self.dtype)
-        self._linear_chain = np.einsum("ij,cjm->cim", LINEAR_TARGET,
-                                       self.modal_rs_cubature).reshape(-1, m)       # (9C, m)
-        # Per cubature tet: d omega/dz (C, 3, m) and d(I + eps)/dz as (C, 3, 3m), so the chain
-        # (db/dy)(QW) = EF J_l d omega/dz + vec(R d eps/dz) is three batched products.
-        self._modal_rs_flat = self.modal_rs_cubature.reshape(-1, m)                # (9C, m)
-        self._omega_rate = np.ascontiguousarray(self.modal_rs_cubature[:, :3, :])
-        self._strain_rate = np.ascontiguousarray(np.einsum(
-            "ckm,kts->ctsm", self.modal_rs_cubature[:, 3:, :], rs.STRAIN_BASIS)
-            .reshape(-1, 3, 3 * m))
+            .transpose(1, 2, 0).reshape(self.basis_size, -1), dtype=self.dtype)
+        # Per entry and cubature tet, dy/dz (9C, m) entry-major; d omega/dz (3, C, m); the
+        # linear part's chain LINEAR_TARGET dy/dz (9, C, m) and d(I + eps)/dz (3, 3, C, m), so
+        # (dr/dy)(dy/dz) = [J_l d omega/dz]x F + R d(I + eps)/dz - linear (``_remainder_chains``).
+        by_entry = self.modal_rs_cubature.transpose(1, 0, 2)                       # (9, C, m)
+        self._modal_rs_rows = np.ascontiguousarray(by_entry).reshape(9 * C, m)
+        self._omega_rate = np.ascontiguousarray(by_entry[:3])
+        self._linear_chain = (LINEAR_TARGET @ self._modal_rs_rows.reshape(9, C * m)
+                              ).reshape(9, C, m)
+        self._strain_rate = np.ascontiguousarray(by_entry[3:][_SYMMETRIC]).reshape(3, 3, C, m)
         self._projection, self._modal_rs = projection, modal_rs
         self._kept_q = self._kept_jacobian = None
 
@@ -629,17 +672,24 @@ class ReducedRS:
 
     def q_gradient(self, z, g):
         """(dq/dz)^T g (m,) for g (rB,) without forming dq/dz: g goes back through the
-        cubature (9C,) and each tet's 9x9 RS-map derivative. O(rB C + C m), a fraction of
+        cubature (9C,) and each tet's RS-map derivative. O(rB C + C m), a fraction of
         ``q_jacobian``'s O(rB C m) (the dynamics' Newton iterations after the first)."""
-        y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])
-        _, R, J_l, EF = _rs_map(y, True)
+        C = len(self.cubature_tets)
+        y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])            # (9, C)
+        _, R, J_l, F = _rs_map(y, True)
         g = np.asarray(g, dtype=np.float64)
-        lam = self._lowered(g) @ self.weighted_projections                         # (9C,)
-        lam = lam.astype(np.float64, copy=False).reshape(-1, 9)
-        g_omega = np.einsum("nj,nji->ni", np.einsum("nk,nkj->nj", lam, EF), J_l)
-        g_eps = np.einsum("nk,nkj->nj", lam, (R.reshape(-1, 9) @ _STRAIN_MAP).reshape(-1, 9, 6))
-        g_y = np.concatenate([g_omega, g_eps], axis=1) - lam @ LINEAR_TARGET   # d r/dy, not db/dy
-        return g @ self.linear_map + g_y.reshape(-1) @ self._modal_rs_flat
+        lam = (self._lowered(g) @ self.weighted_projections).astype(np.float64, copy=False)
+        lam = lam.reshape(9, C)                                 # dE/d vec(r), entry-major
+        # <lam, [u]x F> = u . vee(lam F^T - F lam^T): the rotation part through J_l
+        M = np.einsum("ikc,jkc->ijc", lam.reshape(3, 3, C), F.reshape(3, 3, C)).reshape(9, C)
+        vee = M[[7, 2, 3]] - M[[5, 6, 1]]
+        g_omega = np.einsum("kic,kc->ic", J_l.reshape(3, 3, C), vee)
+        # <lam, R E_k> = <R^T lam, E_k>: the strain part
+        RtL = np.einsum("jic,jkc->ikc", R.reshape(3, 3, C), lam.reshape(3, 3, C)).reshape(9, C)
+        g_eps = RtL[_STRAIN_UPPER] + RtL[_STRAIN_LOWER]
+        g_eps[_STRAIN_DIAGONAL] *= 0.5
+        g_y = np.concatenate([g_omega, g_eps]) - LINEAR_TARGET.T @ lam     # d r/dy, not db/dy
+        return g @ self.linear_map + g_y.reshape(-1) @ self._modal_rs_rows
 
     def q_batch(self, Z, chunk=256):
         """q for many frames: Z (F, m) -> (F, rB); frames are processed ``chunk`` at a time."""
@@ -647,8 +697,8 @@ class ReducedRS:
         out = np.empty((len(Z), self.basis_size))
         for start in range(0, len(Z), chunk):                       # bounds temporary memory
             Zc = Z[start:start + chunk]
-            remainders = self._lowered(self._targets(Zc))
-            out[start:start + chunk] = (remainders @ self.weighted_projections.T
+            remainders = self._lowered(self._remainder_columns(Zc))
+            out[start:start + chunk] = ((self.weighted_projections @ remainders).T
                                         + Zc @ self.linear_map.T)
         return out
 
@@ -692,41 +742,48 @@ class ReducedRS:
         return RowEvaluator(self, rows)
 
     def _rs_coordinates(self, Z):
-        """y (F C, 9) at the cubature tets of poses Z (F, m)."""
-        return (Z @ self._modal_rs_flat.T).reshape(-1, 9)
+        """y (9, C F) at the cubature tets of poses Z (F, m), entry-major, column e F + t."""
+        return (self._modal_rs_rows @ Z.T).reshape(9, -1)
 
-    def _targets(self, Z):
-        """vec r (F, 9C), the remainders of poses Z (F, m) at the cubature tets."""
-        return fast_remainders(self._rs_coordinates(Z)).reshape(len(Z), -1)
+    def _remainder_columns(self, Z):
+        """vec r (9C, F), entry-major, the remainders of poses Z (F, m) at the cubature tets."""
+        return fast_remainders(self._rs_coordinates(Z)).reshape(-1, len(Z))
 
     def _chains(self, Z):
-        """(dr/dy)(QW) (F, 9C, m) at the cubature tets for poses Z (F, m)."""
-        return self._targets_and_chains(Z)[1]
+        """(dr/dy)(dy/dz) (F, 9C, m) at the cubature tets for poses Z (F, m)."""
+        return self._remainders_and_chains(Z)[1]
 
-    def _targets_and_chains(self, Z):
-        """vec r (F, 9C) and (dr/dy)(QW) (F, 9C, m), sharing the rotations."""
+    def _remainders_and_chains(self, Z):
+        """vec r (9C, F) and (dr/dy)(dy/dz) (F, 9C, m), from one evaluation of the RS map."""
         y = self._rs_coordinates(Z)
-        target, R, J_l, EF = _rs_map(y, True)
-        return ((target - y @ LINEAR_TARGET.T).reshape(len(Z), -1),
-                self._remainder_chains(len(Z), R, J_l, EF))
+        remainders, R, J_l, F = _rs_map(y, True, remainder=True)
+        return (remainders.reshape(-1, len(Z)),
+                self._remainder_chains(R, J_l, F, len(Z)))
 
-    def _remainder_chains(self, F, R, J_l, EF):
-        """(dr/dy)(QW) (F, 9C, m) from ``_rs_map``'s R, J_l, EF of F poses."""
+    def _remainder_chains(self, R, J_l, F, num_poses):
+        """(dr/dy)(dy/dz) (F, 9C, m) from ``_rs_map``'s vec R, J_l and F (9, C F) of F poses
+        (column e F + t): [J_l d omega/dz]x F + R d(I + eps)/dz - LINEAR_TARGET dy/dz."""
         C, m = len(self.cubature_tets), self.num_coords
-        chain = (R.reshape(F, C, 3, 3) @ self._strain_rate).reshape(F, C, 9, m)
-        spatial = J_l.reshape(F, C, 3, 3) @ self._omega_rate                # J_l d omega/dz
-        chain += EF.reshape(F, C, 9, 3) @ spatial
-        return chain.reshape(F, -1, m) - self._linear_chain
+        R, J_l, F = (part.reshape(3, 3, C, num_poses) for part in (R, J_l, F))
+        spin = np.einsum("ijct,jcm->ictm", J_l, self._omega_rate)         # (3, C, F, m)
+        chain = np.einsum("ajct,jbcm->abctm", R, self._strain_rate)       # (3, 3, C, F, m)
+        chain += _skew_times(spin, F[..., None])
+        chain -= self._linear_chain.reshape(3, 3, C, 1, m)
+        return np.moveaxis(chain, 3, 0).reshape(num_poses, 9 * C, m)
 
     def q_batch_and_jacobian(self, Z, at):
-        """q (F, rB) of poses Z (F, m) and dq/dz (rB, m) at pose Z[at], from one product with
-        the weighted projections (they are read once for both; the dynamics' first Newton
-        iterate is one of the poses its integrator evaluates)."""
+        """q (F, rB) of poses Z (F, m) and dq/dz (rB, m) at pose Z[at], from one evaluation of
+        the RS map and one product with the weighted projections (they are read once for
+        both; the dynamics' first Newton iterate is one of the poses its integrator
+        evaluates)."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
-        F = len(Z)
-        columns = np.empty((9 * len(self.cubature_tets), F + self.num_coords), dtype=self.dtype)
-        columns[:, :F] = self._targets(Z).T
-        columns[:, F:] = self._chains(Z[at:at + 1])[0]      # the RS map's derivatives of one pose
+        F, C = len(Z), len(self.cubature_tets)
+        y = self._rs_coordinates(Z)
+        remainders, R, J_l, D = _rs_map(y, True, remainder=True)
+        columns = np.empty((9 * C, F + self.num_coords), dtype=self.dtype)
+        columns[:, :F] = remainders.reshape(-1, F)
+        at_pose = (part.reshape(9, C, F)[:, :, at] for part in (R, J_l, D))     # (9, C) each
+        columns[:, F:] = self._remainder_chains(*at_pose, 1)[0]
         product = self.weighted_projections @ columns
         Q, J = product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
         self._kept_q, self._kept_jacobian = (Z[at].copy(), Q[at].copy()), (Z[at].copy(), J.copy())
@@ -844,8 +901,8 @@ class RowEvaluator:
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         if not self.fused:
             return self.displacement_batch(Z), self.jacobian_batch(Z)
-        target, chain = self.deformer._targets_and_chains(Z)
-        u = target @ self._folded.T + Z @ self._linear.T
+        remainders, chain = self.deformer._remainders_and_chains(Z)
+        u = (self._folded @ remainders).T + Z @ self._linear.T
         return u.reshape(len(Z), -1, 3), self._folded @ chain + self._linear
 
     def jacobian(self, z):
@@ -856,7 +913,7 @@ class RowEvaluator:
         """u_J (F, k, 3) of Z (F, m)."""
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         if self.fused:
-            u = self.deformer._targets(Z) @ self._folded.T + Z @ self._linear.T
+            u = (self._folded @ self.deformer._remainder_columns(Z)).T + Z @ self._linear.T
         else:
             u = self.deformer.q_batch(Z) @ self.rows.T
         return u.reshape(len(Z), -1, 3)
@@ -1089,8 +1146,8 @@ def _tet_columns(projection, modal_rs, Z, tets, scale, out):
     """``reduced_rs_columns`` of ``tets`` (k,) on one thread, into out (F rB, k) column-major."""
     P = projection.tet_projections(tets)                                  # (k, rB, 9)
     y = rs.warp_pose_block(modal_rs[tets], Z)                             # (k, 9, F)
-    y = y.transpose(0, 2, 1).reshape(-1, 9)
-    r = fast_remainders(y).reshape(len(tets), len(Z), 9)
+    r = fast_remainders(y.transpose(1, 0, 2).reshape(9, -1))              # (9, k F)
+    r = r.reshape(9, len(tets), len(Z)).transpose(1, 2, 0)                # (k, F, 9)
     cols = out.T.reshape(len(tets), len(Z), -1)     # a view: out's columns are contiguous
     np.matmul(r, P.transpose(0, 2, 1), out=cols)                          # (k, F, rB)
     cols /= scale[None, :, None]
