@@ -10,6 +10,8 @@ PYTHON313 ?= $(shell tools/find_python.sh 3.13)
 
 NEWEST    := 5.2
 MATRIX    := 4.2 4.5 5.0
+MATRIX_VENVS := $(foreach v,$(MATRIX),.venv-bpy-$(v)/.stamp)
+MATRIX_TESTS := $(addprefix test-matrix-,$(MATRIX))
 VENV      := .venv
 PY        := $(VENV)/bin/python
 VERSION   := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
@@ -29,7 +31,7 @@ FLAMENCO_LDFLAGS := -X projects.blender.org/studio/flamenco/internal/appinfo.App
 python_version = $(if $(filter 4.% 5.0,$(1)),3.11,3.13)
 python_for     = $(PYTHON$(subst .,,$(call python_version,$(1))))
 
-.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix test-ui test-zoo ui-root test-farm flamenco demo bench clean
+.PHONY: all venv deps wheels build validate test test-solver test-blender test-matrix $(MATRIX_TESTS) test-ui test-zoo ui-root test-farm flamenco demo bench clean
 
 all: build
 
@@ -98,19 +100,27 @@ test-zoo: venv $(LINUX_ZIP)
 	RS_ELASTIC_ZOO=full RS_ELASTIC_ZOO_REPORT=build/zoo-report.md RS_ELASTIC_ZIP=$(LINUX_ZIP) \
 	    $(PY) -m pytest -q tests/blender/test_zoo.py
 
-# The whole suite: solver, then Blender on the newest LTS, then on every older supported Blender,
-# then the GUI tier, then the farm (a Flamenco manager and worker built from source, baking shots
-# end to end).
-test: test-solver test-blender test-matrix test-ui test-farm
+# The whole suite: solver, Blender on the newest LTS and on every older supported Blender, then
+# the GUI tier, then the farm (a Flamenco manager and worker built from source, baking shots end
+# to end). Everything they need is made first, one thing at a time (venvs, wheels, zips); then the
+# solver and Blender tiers run two at a time (each keeps about 1.3 of this machine's 2 cores
+# busy, and none races a clock: their timeouts are minutes), each tier's output in one piece
+# when it ends; the GUI tier and the farm, which drive a window and a farm against timeouts, run
+# alone after them.
+test:
+	$(MAKE) --no-print-directory deps $(LINUX_ZIP) $(MATRIX_VENVS)
+	$(MAKE) --no-print-directory -j2 --output-sync=target test-solver test-blender $(MATRIX_TESTS)
+	$(MAKE) --no-print-directory test-ui
+	$(MAKE) --no-print-directory test-farm
 
-# The whole Blender suite on each older version, with the same zips (validated by that version's
-# own extension tool first).
-test-matrix: $(LINUX_ZIP) $(foreach v,$(MATRIX),.venv-bpy-$(v)/.stamp)
-	@for v in $(MATRIX); do \
-	    echo "== Blender $$v (bpy module, Python $$(.venv-bpy-$$v/bin/python -c 'import sys; print(sys.version.split()[0])'))"; \
-	    for zip in dist/*.zip; do .venv-bpy-$$v/bin/python tools/ext_tool.py validate "$$zip" || exit 1; done; \
-	    RS_ELASTIC_ZOO_SAMPLE=8 RS_ELASTIC_ZIP=$(LINUX_ZIP) .venv-bpy-$$v/bin/python -m pytest -q tests/blender || exit 1; \
-	done
+# The whole Blender suite on each older version (test-matrix-X.Y for one), with the same zips
+# (validated by that version's own extension tool first).
+test-matrix: $(MATRIX_TESTS)
+
+$(MATRIX_TESTS): test-matrix-%: $(LINUX_ZIP) .venv-bpy-%/.stamp
+	@echo "== Blender $* (bpy module, Python $$(.venv-bpy-$*/bin/python -c 'import sys; print(sys.version.split()[0])'))"
+	@for zip in dist/*.zip; do .venv-bpy-$*/bin/python tools/ext_tool.py validate "$$zip" || exit 1; done
+	RS_ELASTIC_ZOO_SAMPLE=8 RS_ELASTIC_ZIP=$(LINUX_ZIP) .venv-bpy-$*/bin/python -m pytest -q tests/blender
 
 # The GUI tier (tests/ui): Debian's Blender in a real window under Xvfb, driven by real input
 # events, inside a Debian root that tools/ui/build_root.sh builds into build/ui-root (as root:
