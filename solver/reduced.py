@@ -761,12 +761,13 @@ class ReducedRS:
                 self._remainder_chains(R, J_l, F, len(Z)))
 
     def _remainder_chains(self, R, J_l, F, num_poses):
-        """(dr/dy)(dy/dz) (F, 9C, m) from ``_rs_map``'s vec R, J_l and F (9, C F) of F poses
-        (column e F + t): [J_l d omega/dz]x F + R d(I + eps)/dz - LINEAR_TARGET dy/dz."""
+        """(dr/dy)(dy/dz) (P, 9C, m) from ``_rs_map``'s vec R, J_l and F (9, C P) of P =
+        num_poses poses (column e P + t): [J_l d omega/dz]x F + R d(I + eps)/dz
+        - LINEAR_TARGET dy/dz."""
         C, m = len(self.cubature_tets), self.num_coords
         R, J_l, F = (part.reshape(3, 3, C, num_poses) for part in (R, J_l, F))
-        spin = np.einsum("ijct,jcm->ictm", J_l, self._omega_rate)         # (3, C, F, m)
-        chain = np.einsum("ajct,jbcm->abctm", R, self._strain_rate)       # (3, 3, C, F, m)
+        spin = np.einsum("ijct,jcm->ictm", J_l, self._omega_rate)         # (3, C, P, m)
+        chain = np.einsum("ajct,jbcm->abctm", R, self._strain_rate)       # (3, 3, C, P, m)
         chain += _skew_times(spin, F[..., None])
         chain -= self._linear_chain.reshape(3, 3, C, 1, m)
         return np.moveaxis(chain, 3, 0).reshape(num_poses, 9 * C, m)
@@ -779,10 +780,10 @@ class ReducedRS:
         Z = np.atleast_2d(np.asarray(Z, dtype=np.float64))
         F, C = len(Z), len(self.cubature_tets)
         y = self._rs_coordinates(Z)
-        remainders, R, J_l, D = _rs_map(y, True, remainder=True)
+        remainders, R, J_l, gradients = _rs_map(y, True, remainder=True)
         columns = np.empty((9 * C, F + self.num_coords), dtype=self.dtype)
         columns[:, :F] = remainders.reshape(-1, F)
-        at_pose = (part.reshape(9, C, F)[:, :, at] for part in (R, J_l, D))     # (9, C) each
+        at_pose = (part.reshape(9, C, F)[:, :, at] for part in (R, J_l, gradients))  # (9, C)
         columns[:, F:] = self._remainder_chains(*at_pose, 1)[0]
         product = self.weighted_projections @ columns
         Q, J = product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map

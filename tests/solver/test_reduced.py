@@ -404,6 +404,21 @@ def test_fast_targets_match_rs_module():
                                atol=0)
 
 
+def test_a_tets_remainder_does_not_depend_on_the_other_tets_in_the_call():
+    """``fast_remainders`` (entry-major, the cubature's columns and the deformer) is elementwise:
+    a tet's remainder is the same to the last bit alone, in a slice of the tets, or among all of
+    them (the training splits its tets over threads, and Prepare must not depend on how), and it
+    is b(y) - [omega]x - eps of the RS module."""
+    rng = np.random.default_rng(8)
+    y = np.concatenate([rng.normal(size=(3, 301)), 0.3 * rng.normal(size=(6, 301))])
+    whole = reduced.fast_remainders(y)
+    for part in (slice(0, 1), slice(7, 8), slice(5, 42), slice(100, 301)):
+        assert np.array_equal(reduced.fast_remainders(np.ascontiguousarray(y[:, part])),
+                              whole[:, part])
+    linear = (reduced.LINEAR_TARGET @ y).T
+    np.testing.assert_allclose(whole.T, rs.rs_target(y.T).reshape(-1, 9) - linear, atol=1e-14)
+
+
 # Linear baseline and cache -------------------------------------------------------------------
 
 def test_linear_deformer_is_exactly_linear(bar):
