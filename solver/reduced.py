@@ -603,13 +603,13 @@ class ReducedRS:
             (self.cubature_weights[:, None, None] * self.projections)
             .transpose(1, 2, 0).reshape(self.basis_size, -1), dtype=self.dtype)
         # Per entry and cubature tet, dy/dz (9C, m) entry-major; d omega/dz (3, C, m); the
-        # linear part's chain LINEAR_TARGET dy/dz (9, C, m) and d(I + eps)/dz (3, 3, C, m), so
+        # linear part's chain LINEAR_TARGET dy/dz (3, 3, C, 1, m) and d(I + eps)/dz (3, 3, C, m), so
         # (dr/dy)(dy/dz) = [J_l d omega/dz]x F + R d(I + eps)/dz - linear (``_remainder_chains``).
         by_entry = self.modal_rs_cubature.transpose(1, 0, 2)                       # (9, C, m)
         self._modal_rs_rows = np.ascontiguousarray(by_entry).reshape(9 * C, m)
         self._omega_rate = np.ascontiguousarray(by_entry[:3])
         self._linear_chain = (LINEAR_TARGET @ self._modal_rs_rows.reshape(9, C * m)
-                              ).reshape(9, C, m)
+                              ).reshape(3, 3, C, 1, m)              # one pose axis to broadcast
         self._strain_rate = np.ascontiguousarray(by_entry[3:][_SYMMETRIC]).reshape(3, 3, C, m)
         self._projection, self._modal_rs = projection, modal_rs
         self._kept_q = self._kept_jacobian = None
@@ -769,7 +769,7 @@ class ReducedRS:
         spin = np.einsum("ijct,jcm->ictm", J_l, self._omega_rate)         # (3, C, P, m)
         chain = np.einsum("ajct,jbcm->abctm", R, self._strain_rate)       # (3, 3, C, P, m)
         chain += _skew_times(spin, F[..., None])
-        chain -= self._linear_chain.reshape(3, 3, C, 1, m)
+        chain -= self._linear_chain
         return np.moveaxis(chain, 3, 0).reshape(num_poses, 9 * C, m)
 
     def q_batch_and_jacobian(self, Z, at):
