@@ -368,6 +368,12 @@ _DIAGONAL = slice(0, 9, 4)                               # rows of vec(M) on M's
 _STRAIN_UPPER = np.array([3 * i + j for i, j in rs.STRAIN_INDEX])
 _STRAIN_LOWER = np.array([3 * j + i for i, j in rs.STRAIN_INDEX])
 _STRAIN_DIAGONAL = np.array([0, 3, 5])
+# (s x F e_b)[a] = s[_NEXT[a]] F[_AFTER[a], b] - s[_AFTER[a]] F[_NEXT[a], b].
+_NEXT, _AFTER = np.array([1, 2, 0]), np.array([2, 0, 1])
+# Column b of R E_k is R's column _STRAIN_SOURCE[b, k] where E_k[i, b] = 1 (_STRAIN_MASK), else 0.
+_STRAIN_SOURCE, _STRAIN_MASK = np.zeros((3, 6), dtype=np.int64), np.zeros((3, 6, 1))
+for _k, (_i, _j) in enumerate(rs.STRAIN_INDEX):
+    _STRAIN_SOURCE[[_j, _i], _k], _STRAIN_MASK[[_j, _i], _k] = (_i, _j), 1.0
 
 
 def _rs_map(y, jacobian, remainder=False):
@@ -426,30 +432,19 @@ def fast_targets(y, jacobian=False):
     if not jacobian:
         return _rs_map(y, False).T
     target, R, J_l, F = _rs_map(y, True)
-    n = y.shape[1]
-    J = np.empty((9, 9, n))                   # [row of vec(b), coordinate of y, tet]
-    for i in range(3):                        # d vec(b) / d omega_i = vec([J_l e_i]x F)
-        J[:, i] = _skew_times(J_l.reshape(3, 3, n)[:, i], F.reshape(3, 3, n)).reshape(9, n)
-    J[:, 3:] = _rotated_strains(R.reshape(3, 3, n)).reshape(9, 6, n)
-    return target.T, J.transpose(2, 0, 1)
+    return target.T, _target_derivatives(R, J_l, F).transpose(2, 0, 1)
 
 
-def _skew_times(s, F):
-    """[s]x F (3, 3, ...) for vectors s (3, ...) and matrices F (3, 3, ...) broadcast against
-    them (cross products of s with F's columns: no 3 x 3 stacks)."""
-    return np.stack([s[1] * F[2] - s[2] * F[1],
-                     s[2] * F[0] - s[0] * F[2],
-                     s[0] * F[1] - s[1] * F[0]])
-
-
-def _rotated_strains(R):
-    """R E_k (3, 3, 6, ...) for the six strain basis matrices E_k (``rs.STRAIN_BASIS``) and
-    rotations R (3, 3, ...): column j of R E_k is R's column i where E_k[i, j] = 1."""
-    out = np.zeros((3, 3, 6) + R.shape[2:])
-    for k, (i, j) in enumerate(rs.STRAIN_INDEX):
-        out[:, j, k] = R[:, i]
-        out[:, i, k] = R[:, j]
-    return out
+def _target_derivatives(R, J_l, F):
+    """d vec(b)/dy (9, 9, n) [row of vec(b), coordinate of y, tet] from ``_rs_map``'s vec R,
+    J_l and F (9, n): d vec(b)/d omega_i = vec([J_l e_i]x F) (the cross products of J_l's
+    column i with F's columns) and d vec(b)/d eps_k = vec(R E_k). Elementwise, as the map."""
+    n = R.shape[1]
+    J_l, F, R = J_l.reshape(3, 3, n), F.reshape(3, 3, n), R.reshape(3, 3, n)
+    spin = (J_l[_NEXT][:, None] * F[_AFTER][:, :, None]
+            - J_l[_AFTER][:, None] * F[_NEXT][:, :, None])               # [a, b, i, tet]
+    strain = R[:, _STRAIN_SOURCE] * _STRAIN_MASK                         # [a, b, k, tet]
+    return np.concatenate([spin.reshape(9, 3, n), strain.reshape(9, 6, n)], axis=1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -602,15 +597,9 @@ class ReducedRS:
         self.weighted_projections = np.ascontiguousarray(
             (self.cubature_weights[:, None, None] * self.projections)
             .transpose(1, 2, 0).reshape(self.basis_size, -1), dtype=self.dtype)
-        # Per entry and cubature tet, dy/dz (9C, m) entry-major; d omega/dz (3, C, m); the
-        # linear part's chain LINEAR_TARGET dy/dz (3, 3, C, 1, m) and d(I + eps)/dz (3, 3, C, m), so
-        # (dr/dy)(dy/dz) = [J_l d omega/dz]x F + R d(I + eps)/dz - linear (``_remainder_chains``).
-        by_entry = self.modal_rs_cubature.transpose(1, 0, 2)                       # (9, C, m)
-        self._modal_rs_rows = np.ascontiguousarray(by_entry).reshape(9 * C, m)
-        self._omega_rate = np.ascontiguousarray(by_entry[:3])
-        self._linear_chain = (LINEAR_TARGET @ self._modal_rs_rows.reshape(9, C * m)
-                              ).reshape(3, 3, C, 1, m)              # one pose axis to broadcast
-        self._strain_rate = np.ascontiguousarray(by_entry[3:][_SYMMETRIC]).reshape(3, 3, C, m)
+        # dy/dz at the cubature tets, entry-major (9C, m): y = rows @ z for all of them at once.
+        self._modal_rs_rows = np.ascontiguousarray(
+            self.modal_rs_cubature.transpose(1, 0, 2)).reshape(9 * C, m)
         self._projection, self._modal_rs = projection, modal_rs
         self._kept_q = self._kept_jacobian = None
 
@@ -760,17 +749,20 @@ class ReducedRS:
         return (remainders.reshape(-1, len(Z)),
                 self._remainder_chains(R, J_l, F, len(Z)))
 
-    def _remainder_chains(self, R, J_l, F, num_poses):
+    def _remainder_chains(self, R, J_l, F, num_poses, out=None):
         """(dr/dy)(dy/dz) (P, 9C, m) from ``_rs_map``'s vec R, J_l and F (9, C P) of P =
-        num_poses poses (column e P + t): [J_l d omega/dz]x F + R d(I + eps)/dz
-        - LINEAR_TARGET dy/dz."""
+        num_poses poses (column e P + t): per tet and pose the 9 x 9 derivative of the
+        remainder (``_target_derivatives`` - LINEAR_TARGET) times the tet's dy/dz (9, m), one
+        stacked matrix product. out: a (9, C, m) array or view to write a single pose's
+        chains into (the fused product's columns), else they come in a new array."""
         C, m = len(self.cubature_tets), self.num_coords
-        R, J_l, F = (part.reshape(3, 3, C, num_poses) for part in (R, J_l, F))
-        spin = np.einsum("ijct,jcm->ictm", J_l, self._omega_rate)         # (3, C, P, m)
-        chain = np.einsum("ajct,jbcm->abctm", R, self._strain_rate)       # (3, 3, C, P, m)
-        chain += _skew_times(spin, F[..., None])
-        chain -= self._linear_chain
-        return np.moveaxis(chain, 3, 0).reshape(num_poses, 9 * C, m)
+        derivatives = _target_derivatives(R, J_l, F)
+        derivatives -= LINEAR_TARGET[:, :, None]
+        by_tet = np.ascontiguousarray(derivatives.transpose(2, 0, 1))           # (C P, 9, 9)
+        if out is not None:
+            return np.matmul(by_tet, self.modal_rs_cubature, out=out.transpose(1, 0, 2))
+        chain = np.matmul(by_tet.reshape(C, num_poses, 9, 9), self.modal_rs_cubature[:, None])
+        return chain.transpose(1, 2, 0, 3).reshape(num_poses, 9 * C, m)
 
     def q_batch_and_jacobian(self, Z, at):
         """q (F, rB) of poses Z (F, m) and dq/dz (rB, m) at pose Z[at], from one evaluation of
@@ -784,7 +776,7 @@ class ReducedRS:
         columns = np.empty((9 * C, F + self.num_coords), dtype=self.dtype)
         columns[:, :F] = remainders.reshape(-1, F)
         at_pose = (part.reshape(9, C, F)[:, :, at] for part in (R, J_l, gradients))  # (9, C)
-        columns[:, F:] = self._remainder_chains(*at_pose, 1)[0]
+        self._remainder_chains(*at_pose, 1, out=columns[:, F:].reshape(9, C, self.num_coords))
         product = self.weighted_projections @ columns
         Q, J = product[:, :F].T + Z @ self.linear_map.T, product[:, F:] + self.linear_map
         self._kept_q, self._kept_jacobian = (Z[at].copy(), Q[at].copy()), (Z[at].copy(), J.copy())
