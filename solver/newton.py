@@ -30,24 +30,34 @@ import scipy.linalg
 from . import reduced, rs
 
 ARMIJO = 1e-4
+ROUNDING = 64 * np.finfo(float).eps  # relative rounding of a step's objective (sums of terms)
 MAX_HALVINGS = 30
 
 
 def newton_step(H, grad, fallback=None):
     """-H^-1 grad by Cholesky. If H is not positive definite: ``fallback`` when given, else
-    H with a growing multiple of its diagonal added."""
+    H with a growing multiple of its diagonal added. LAPACK's potrf/potrs directly: the
+    systems are m x m (tens), where scipy.linalg's wrappers cost several times the solve."""
     H = 0.5 * (H + H.T)
-    scale = np.maximum(np.abs(np.diag(H)), 1e-300)
-    shift = 0.0
+    factor, failed = scipy.linalg.lapack.dpotrf(H, lower=False, clean=False)
+    if not failed:
+        return -scipy.linalg.lapack.dpotrs(factor, grad, lower=False)[0]
+    if fallback is not None:
+        return fallback
+    scale = np.diag(np.maximum(np.abs(np.diag(H)), 1e-300))
+    shift = 1e-8
     for _ in range(40):
-        try:
-            factor = scipy.linalg.cho_factor(H + shift * np.diag(scale), check_finite=False)
-            return -scipy.linalg.cho_solve(factor, grad, check_finite=False)
-        except np.linalg.LinAlgError:
-            if fallback is not None:
-                return fallback
-            shift = 1e-8 if shift == 0.0 else 10.0 * shift
+        factor, failed = scipy.linalg.lapack.dpotrf(H + shift * scale, lower=False, clean=False)
+        if not failed:
+            return -scipy.linalg.lapack.dpotrs(factor, grad, lower=False)[0]
+        shift *= 10.0
     raise np.linalg.LinAlgError("Newton system could not be regularised")
+
+
+def hidden_decrease(slope, f):
+    """Whether a step's predicted decrease -slope is below the rounding of the objective's
+    value f: f cannot judge such a step (``StepSolver._line_search``)."""
+    return -slope <= ROUNDING * abs(f)
 
 
 class Damping(NamedTuple):
@@ -117,8 +127,9 @@ class StepSolver:
                 small = self._moved2(J, step) <= self.step_tol2
                 if not small and self.geometric is not None:
                     step = newton_step(gauss_newton + self.geometric(s, gq), grad, step)
-            s_new, q_new, f_new = self._line_search(model, s, f, step, float(grad @ step),
-                                                    damping, small)
+            slope = float(grad @ step)
+            s_new, q_new, f_new = self._line_search(model, s, f, step, slope, damping,
+                                                    small, hidden_decrease(slope, f))
             if s_new is None:                      # no decrease possible: at round-off level
                 break
             s, q, f = s_new, q_new, f_new
@@ -137,18 +148,21 @@ class StepSolver:
         moved = J @ step
         return float(moved @ (self.mass_matrix @ moved))
 
-    def _line_search(self, model, s, f, step, slope, damping, converged=False):
+    def _line_search(self, model, s, f, step, slope, damping, converged=False, hidden=False):
         """Backtracking Armijo; (s, q, f) of the accepted point or (None, None, None).
 
         converged: the step is below the tolerance, so its decrease can be below the rounding
         of f (the deformer's float32 products round q to ~1e-7 of its nonlinear part): it is
-        tried whole, once, and not halved against that noise (the iterate is converged)."""
-        alpha = 1.0
-        for _ in range(1 if converged else MAX_HALVINGS):
+        tried whole, once, and not halved against that noise (the iterate is converged).
+        hidden: the step's predicted decrease is below f's own rounding, so f cannot judge it
+        (halving would only shrink it below the resolution of s): it is taken whole unless f
+        rises by more than that rounding; the gradient, exact where f is not, goes on."""
+        alpha, allowance = 1.0, ROUNDING * abs(f) if hidden else 0.0
+        for _ in range(1 if converged or hidden else MAX_HALVINGS):
             s_try = s + alpha * step
             q_try = self.deformer.q(s_try)
             f_try = self.objective(model, s_try, q_try, damping)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
+            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope + allowance:
                 return s_try, q_try, f_try
             alpha *= 0.5
         return None, None, None
@@ -182,8 +196,9 @@ class StepSolver:
             small = moved(step) <= self.step_tol2
             if not small and iterations > 1:
                 step = newton_step(exact(), grad, step)
-            trial = self._framed_line_search(model, s, R, c, f, step, float(grad @ step),
-                                             damping, contact)
+            slope = float(grad @ step)
+            trial = self._framed_line_search(model, s, R, c, f, step, slope, damping, contact,
+                                             hidden_decrease(slope, f))
             if trial is None:                      # no decrease possible: at round-off level
                 break
             s, q, R, c, f = trial
@@ -220,16 +235,19 @@ class StepSolver:
             return float(z @ (mass @ z))
         return grad, T.T @ (gauss_newton + Hc) @ T + own, exact_hessian, moved
 
-    def _framed_line_search(self, model, s, R, c, f, step, slope, damping, contact):
-        """Backtracking Armijo along (s + a ds, exp(a skew(dphi)) R, c + a du)."""
+    def _framed_line_search(self, model, s, R, c, f, step, slope, damping, contact,
+                            hidden=False):
+        """Backtracking Armijo along (s + a ds, exp(a skew(dphi)) R, c + a du); hidden: as
+        ``_line_search``'s."""
         m, alpha = len(s), 1.0
-        for _ in range(MAX_HALVINGS):
+        allowance = ROUNDING * abs(f) if hidden else 0.0
+        for _ in range(1 if hidden else MAX_HALVINGS):
             s_try = s + alpha * step[:m]
             R_try = rs.exp_rotation(alpha * step[None, m:m + 3])[0] @ R
             c_try = c + alpha * step[m + 3:]
             q_try = self.deformer.q(s_try)
             f_try = self.framed_objective(model, s_try, q_try, R_try, c_try, damping, contact)
-            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope:
+            if np.isfinite(f_try) and f_try <= f + ARMIJO * alpha * slope + allowance:
                 return s_try, q_try, R_try, c_try, f_try
             alpha *= 0.5
         return None

@@ -260,8 +260,10 @@ def test_force_free_contact_matches_the_closed_form_frame(free_cube, integrator)
     print(f"{integrator}: joint vs closed-form frame over 1 s: |ds| {np.abs(a.coords - b.coords).max():.1e}"
           f" (|s| {scale:.2f}), |dR| {np.abs(a.rotations - b.rotations).max():.1e}, "
           f"|dc| {np.abs(a.translations - b.translations).max():.1e} m")
-    assert np.abs(a.coords - b.coords).max() < 1e-6 * scale
-    assert np.abs(a.rotations - b.rotations).max() < 1e-6
+    # 1e-10 both (1e-8 to 1e-6 when a step the objective's rounding could not judge was
+    # halved away: ``newton.hidden_decrease``)
+    assert np.abs(a.coords - b.coords).max() < 1e-8 * scale
+    assert np.abs(a.rotations - b.rotations).max() < 1e-8
     assert np.abs(a.translations - b.translations).max() < 1e-7
     assert len(far.calls) == 24 * sim.substeps
 

@@ -628,6 +628,39 @@ def test_a_converged_step_is_tried_once_not_halved_against_rounding():
     assert np.array_equal(s, np.zeros(2)) and iterations == 1
 
 
+class NoisyBowl:
+    """V(s) = 1e6 + sum cosh(s - t), each evaluation one ulp higher than the one before (as a
+    sum of large terms rounds differently from call to call): near the minimiser t a Newton
+    step's decrease is far below that noise."""
+
+    minimiser = np.array([0.3, -0.2])
+    rest_hessian = np.eye(2)
+
+    def __init__(self):
+        self.evaluations = 0
+
+    def evaluate(self, s, order):
+        self.evaluations += 1
+        e = s - self.minimiser
+        value = 1e6 + np.cosh(e).sum() + self.evaluations * np.spacing(1e6)
+        return value, np.sinh(e), np.diag(np.cosh(e))
+
+
+def test_a_step_the_objectives_rounding_cannot_judge_is_taken():
+    """Newton converges to the minimiser even where the objective's value no longer resolves
+    its steps (the error goes 0.3 -> 9e-3 -> 2e-7 -> 1e-20 here, the last step decreasing V by
+    1e-14 against an ulp of 1e-10): a step whose predicted decrease is below the rounding of
+    V is taken whole, not halved until it vanishes (which left the free body's two frame
+    formulations 1e-6 apart after a second of spinning)."""
+    potential = NoisyBowl()
+    solver = newton.StepSolver(reduced.LinearDeformer(2), potential, np.eye(2),
+                               step_tol2=1e-30, max_iterations=10)
+    damping = newton.Damping(np.zeros((2, 2)), np.zeros(2), np.zeros(2))
+    s, _, iterations = solver.minimise(NoInertia(), np.zeros(2), damping)
+    assert np.abs(s - potential.minimiser).max() < 1e-12
+    assert potential.evaluations < 40                       # the noise stayed a few ulps
+
+
 def test_q_gradient_is_the_jacobian_transpose_product(soft_run):
     """The Newton iterations after a step's first take (dq/ds)^T g from ReducedRS.q_gradient,
     without dq/ds: it must equal J^T g, from rest to rotations past 120 deg."""
