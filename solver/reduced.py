@@ -601,7 +601,7 @@ class ReducedRS:
         self._modal_rs_rows = np.ascontiguousarray(
             self.modal_rs_cubature.transpose(1, 0, 2)).reshape(9 * C, m)
         self._projection, self._modal_rs = projection, modal_rs
-        self._kept_q = self._kept_jacobian = None
+        self._kept_q = self._kept_jacobian = self._kept_map = None
 
     @classmethod
     def build(cls, X, T, modal_rs, B, recon, cubature_tets, cubature_weights, projection=None):
@@ -640,9 +640,20 @@ class ReducedRS:
 
         The last pose's q and dq/dz are kept (``_kept``): a simulation's potentials (the
         reconstruction barrier, a rig's springs) ask for them at the pose its Newton iteration
-        has just evaluated, with the same deformer (``dynamics.step_deformer``)."""
+        has just evaluated, with the same deformer (``dynamics.step_deformer``); so is its RS
+        map, for ``q_gradient`` there."""
         z = np.asarray(z, dtype=np.float64)
-        return self._kept("_kept_q", z, lambda: self.q_batch(z[None])[0])
+        return self._kept("_kept_q", z, lambda: self._q_keeping_map(z))
+
+    def _q_keeping_map(self, z):
+        """q (rB,) of one pose z (m,) as ``q_batch`` computes it, keeping the RS map's R, J_l
+        and F (9, C) there (``_kept_map``) for ``q_gradient``: the dynamics' Newton asks for
+        the gradient at the pose whose q its line search has just accepted."""
+        Z = z[None]
+        remainders, R, J_l, F = _rs_map(self._rs_coordinates(Z), True, remainder=True)
+        self._kept_map = (z.copy(), R, J_l, F)
+        return ((self.weighted_projections @ self._lowered(remainders.reshape(-1, 1))).T
+                + Z @ self.linear_map.T)[0]
 
     def q_jacobian(self, z):
         """dq/dz (rB, m) = A + sum_C w_e P_e (dr/dy)_e (QW)_e (analytic, SPEC section 4)."""
@@ -663,9 +674,12 @@ class ReducedRS:
         """(dq/dz)^T g (m,) for g (rB,) without forming dq/dz: g goes back through the
         cubature (9C,) and each tet's RS-map derivative. O(rB C + C m), a fraction of
         ``q_jacobian``'s O(rB C m) (the dynamics' Newton iterations after the first)."""
-        C = len(self.cubature_tets)
-        y = self._rs_coordinates(np.asarray(z, dtype=np.float64)[None])            # (9, C)
-        _, R, J_l, F = _rs_map(y, True)
+        C, z = len(self.cubature_tets), np.asarray(z, dtype=np.float64)
+        kept = self._kept_map
+        if kept is not None and np.array_equal(kept[0], z):
+            _, R, J_l, F = kept
+        else:
+            _, R, J_l, F = _rs_map(self._rs_coordinates(z[None]), True)           # (9, C)
         g = np.asarray(g, dtype=np.float64)
         lam = (self._lowered(g) @ self.weighted_projections).astype(np.float64, copy=False)
         lam = lam.reshape(9, C)                                 # dE/d vec(r), entry-major

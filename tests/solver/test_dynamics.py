@@ -663,14 +663,21 @@ def test_a_step_the_objectives_rounding_cannot_judge_is_taken():
 
 def test_q_gradient_is_the_jacobian_transpose_product(soft_run):
     """The Newton iterations after a step's first take (dq/ds)^T g from ReducedRS.q_gradient,
-    without dq/ds: it must equal J^T g, from rest to rotations past 120 deg."""
-    deformer = soft_run[0]["deformer"]
+    without dq/ds: it must equal J^T g, from rest to rotations past 120 deg; also where it
+    reuses the RS map that q(s) kept (the pose the line search has just accepted), and not
+    the map of another pose."""
+    deformer = reduced.ReducedRS.from_arrays(soft_run[0]["deformer"].to_arrays())
     rng = np.random.default_rng(12)
-    for s in soft_run[1].coords[::12]:
+    poses = soft_run[1].coords[::12]
+    for s, other in zip(poses, np.roll(poses, 1, axis=0)):
         g = rng.normal(size=deformer.basis_size)
         expected = deformer.q_jacobian(s).T @ g
-        np.testing.assert_allclose(deformer.q_gradient(s, g), expected,
-                                   rtol=0.0, atol=1e-12 * np.abs(expected).max())
+        fresh = deformer.q_gradient(s, g)
+        np.testing.assert_allclose(fresh, expected, rtol=0.0, atol=1e-12 * np.abs(expected).max())
+        deformer.q(s)
+        assert np.array_equal(deformer.q_gradient(s, g), fresh)         # from the kept map
+        deformer.q(other)
+        assert np.array_equal(deformer.q_gradient(s, g), fresh)         # not other's map
 
 
 # Interface -----------------------------------------------------------------------------------
