@@ -384,9 +384,10 @@ def _rs_map(y, jacobian, remainder=False):
 
     With K = [omega]x and K^2 = omega omega^T - t^2 I (t = |omega|):
     R = (1 - b t^2) I + a K + b omega omega^T, J_l = (1 - e t^2) I + b K + e omega omega^T
-    (a, b, e: ``rs.rodrigues_coefficients``). Derivatives (``_remainder_chains``,
-    ``ReducedRS.q_gradient``): d vec(b) / d omega_i = vec([J_l e_i]x F) and
-    d vec(b) / d eps_k = vec(R E_k). Elementwise operations only: each tet's result is the
+    (a, b, e: ``rs.rodrigues_coefficients``). Derivatives: d vec(b) / d omega_i =
+    vec([J_l e_i]x F) and d vec(b) / d eps_k = vec(R E_k), formed per tet by
+    ``_target_derivatives`` (the chains) and contracted with a vector without forming them by
+    ``ReducedRS.q_gradient`` (cheaper there). Elementwise operations only: each tet's result is the
     same to the last bit whatever else is in the call (the cubature's training splits its
     tets over threads).
     """
