@@ -105,11 +105,13 @@ test-zoo: venv $(LINUX_ZIP)
 # to end). Everything they need is made first, one thing at a time (venvs, wheels, zips); then the
 # solver and Blender tiers run two at a time (each keeps about 1.3 of this machine's 2 cores
 # busy, and none races a clock: their timeouts are minutes), each tier's output in one piece
-# when it ends; the GUI tier and the farm, which drive a window and a farm against timeouts, run
-# alone after them.
+# when it ends, and the GUI tier's Debian root and the Flamenco binaries are built last in that
+# phase (in the lane the other tier's last suite leaves idle); the GUI tier and the farm, which
+# drive a window and a farm against timeouts, run alone after them.
 test:
 	$(MAKE) --no-print-directory deps $(LINUX_ZIP) $(MATRIX_VENVS)
-	$(MAKE) --no-print-directory -j2 --output-sync=target test-solver test-blender $(MATRIX_TESTS)
+	$(MAKE) --no-print-directory -j2 --output-sync=target test-solver test-blender $(MATRIX_TESTS) \
+	    ui-root flamenco
 	$(MAKE) --no-print-directory test-ui
 	$(MAKE) --no-print-directory test-farm
 
