@@ -36,22 +36,29 @@ MAX_HALVINGS = 30
 
 def newton_step(H, grad, fallback=None):
     """-H^-1 grad by Cholesky. If H is not positive definite: ``fallback`` when given, else
-    H with a growing multiple of its diagonal added. LAPACK's potrf/potrs directly: the
-    systems are m x m (tens), where scipy.linalg's wrappers cost several times the solve."""
+    H with a growing multiple of its diagonal added."""
     H = 0.5 * (H + H.T)
-    factor, failed = scipy.linalg.lapack.dpotrf(H, lower=False, clean=False)
-    if not failed:
-        return -scipy.linalg.lapack.dpotrs(factor, grad, lower=False)[0]
+    step = _cholesky_solve(H, grad)
+    if step is not None:
+        return -step
     if fallback is not None:
         return fallback
     scale = np.diag(np.maximum(np.abs(np.diag(H)), 1e-300))
     shift = 1e-8
     for _ in range(40):
-        factor, failed = scipy.linalg.lapack.dpotrf(H + shift * scale, lower=False, clean=False)
-        if not failed:
-            return -scipy.linalg.lapack.dpotrs(factor, grad, lower=False)[0]
+        step = _cholesky_solve(H + shift * scale, grad)
+        if step is not None:
+            return -step
         shift *= 10.0
     raise np.linalg.LinAlgError("Newton system could not be regularised")
+
+
+def _cholesky_solve(H, b):
+    """H^-1 b (m,) by LAPACK's potrf/potrs directly (the systems are m x m, tens, where
+    scipy.linalg's wrappers cost several times the solve), or None if H is not positive
+    definite."""
+    factor, failed = scipy.linalg.lapack.dpotrf(H, lower=False, clean=False)
+    return None if failed else scipy.linalg.lapack.dpotrs(factor, b, lower=False)[0]
 
 
 def hidden_decrease(slope, f):
