@@ -63,8 +63,10 @@ def _cholesky_solve(H, b):
 
 def hidden_decrease(slope, f):
     """Whether a step's predicted decrease -slope is below the rounding of the objective's
-    value f: f cannot judge such a step (``StepSolver._line_search``)."""
-    return -slope <= ROUNDING * abs(f)
+    value f: f cannot judge such a step (``StepSolver._line_search``). Never at an infinite
+    f (a start past a barrier): every finite trial is a decrease there, and the line search
+    halves towards one."""
+    return bool(np.isfinite(f)) and -slope <= ROUNDING * abs(f)
 
 
 class Damping(NamedTuple):

@@ -661,6 +661,33 @@ def test_a_step_the_objectives_rounding_cannot_judge_is_taken():
     assert potential.evaluations < 40                       # the noise stayed a few ulps
 
 
+class TwoWalls:
+    """V(s) = |s|^2 / 2 - log(1 - s_0^2) inside |s_0| < 1, +inf outside, where the model's
+    gradient (4 s_0, s_1) sends Newton's full step past the other wall."""
+
+    rest_hessian = np.eye(2)
+
+    def evaluate(self, s, order):
+        if abs(s[0]) >= 1.0:
+            return np.inf, np.array([4.0 * s[0], s[1]]), np.eye(2)
+        gap = 1.0 - s[0] ** 2
+        return (0.5 * float(s @ s) - np.log(gap), s + np.array([2.0 * s[0] / gap, 0.0]),
+                np.eye(2) + np.diag([(2.0 * gap + 4.0 * s[0] ** 2) / gap ** 2, 0.0]))
+
+
+def test_a_start_past_a_barrier_halves_back_inside():
+    """From a start where the objective is infinite, every finite trial is a decrease: the
+    line search halves a step that overshoots past the far wall until one lands inside
+    (1.5 -> -4.5, -1.5, 0), instead of judging the step by rounding (an infinite value's
+    rounding is infinite) and giving up after one trial."""
+    assert not newton.hidden_decrease(-1e-300, np.inf)
+    solver = newton.StepSolver(reduced.LinearDeformer(2), TwoWalls(), np.eye(2),
+                               step_tol2=1e-30, max_iterations=30)
+    damping = newton.Damping(np.zeros((2, 2)), np.zeros(2), np.zeros(2))
+    s, _, _ = solver.minimise(NoInertia(), np.array([1.5, 0.25]), damping)
+    np.testing.assert_allclose(s, np.zeros(2), rtol=0, atol=1e-12)
+
+
 def test_q_gradient_is_the_jacobian_transpose_product(soft_run):
     """The Newton iterations after a step's first take (dq/ds)^T g from ReducedRS.q_gradient,
     without dq/ds: it must equal J^T g, from rest to rotations past 120 deg; also where it
