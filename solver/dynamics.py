@@ -39,7 +39,8 @@ from . import frames, integrators, inversion, newton
 from .body_contact import BodyContact, ContactError, ContactInertia, StartsInsideError
 
 MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
-MIN_VOLUME_RATIO = 1e-3    # det F at or below this counts as inverted (flat or turned inside out)
+MIN_VOLUME_RATIO = inversion.FLAT_J   # det F at or below this counts as inverted (flat or
+                                      # turned inside out): the reconstruction barrier's wall
 SUBSTEP_BOUND = 1.0        # largest dt * w_max of automatic substeps (module docstring)
 MAX_AUTO_SUBSTEPS = 64     # automatic substeps stop here; only top-mode accuracy suffers past it
 MAX_SUBSTEPS = 1000        # largest user override
@@ -350,7 +351,7 @@ class Simulation:
         self._set_step(dt)
         blocked = None
         try:
-            iterations = self._take_step()
+            iterations = self._take_step(restart=splits >= MAX_STEP_SPLITS)
         except StartsInsideError:
             raise
         except ContactError as exc:
@@ -395,15 +396,21 @@ class Simulation:
             self.state.carried = self.scheme.rescaled(self, dt)
             self.state.dt = dt
 
-    def _take_step(self):
-        """One internal step dt from the current state; returns the Newton iterations."""
+    def _take_step(self, restart=False):
+        """One internal step dt from the current state; returns the Newton iterations.
+
+        restart: if Newton ends past a barrier (from a predictor past it), solve the step
+        again from its start state, inside the barriers (``newton.StepSolver.minimise``'s
+        ``feasible``). Only for the shortest retake of a step (``_checked_step``): longer
+        ones are retaken in halves, whose predictors move less."""
         state = self.state
         end = self._end_frame()
         plan = self.scheme.plan(self, end)
         model = self._inertia(plan, end)
         if self.contact is None:
-            s, q, iterations = self.solver.minimise(model, plan.guess, plan.damping,
-                                                    q=plan.guess_q, jacobian=plan.guess_jacobian)
+            s, q, iterations = self.solver.minimise(
+                model, plan.guess, plan.damping, q=plan.guess_q, jacobian=plan.guess_jacobian,
+                feasible=(state.pose.coords, state.pose.q) if restart else None)
             R, c = frames.best_frame(self.moments, model, plan.target, q) if self.free else end
         elif self.free:
             self._begin_contact(plan)

@@ -357,6 +357,8 @@ def with_barrier(potential, modal_rs, volumes, j_hat=J_HAT):
                                                                   volumes, j_hat))
 
 
+FLAT_J = 1e-3                 # det F at or below this counts as flat or inverted: the wall
+                              # of the reconstruction barrier and the step check's bound
 RECONSTRUCTION_J_HAT = 0.25   # det F of the reconstruction below which its barrier acts
 WATCH_J = 0.6                 # tets at or below this det F at a step's start are watched
 
@@ -382,6 +384,12 @@ class ReconstructionBarrier:
     to ``watch``: the tets at or below WATCH_J then carry the barrier during the next step
     (a tet above 0.6 at a step's start that reaches 0 within it is caught by the check, which
     adds it to the watch and retakes the step in halves). Nothing is watched until then.
+
+    Its wall is at det F = FLAT_J, not 0: the barrier is b(J - FLAT_J) with j_hat - FLAT_J
+    for j_hat, so what it admits is what the step check (``dynamics``) passes. With its wall
+    at 0, a tet pressed against it ended between 0 and FLAT_J, and the check undid the step
+    down to its shortest retake and stopped the simulation (the shared cow, pinned at its
+    feet at E = 5e4 Pa under gravity, at frame 18).
 
     deformer: ``reduced.ReducedRS`` or ``LinearDeformer`` with its basis B (3N, rB);
     rest_positions X (N, 3) [m]; tets (E, 4); stiffness kappa [Pa] (a number or (E,)).
@@ -426,7 +434,7 @@ class ReconstructionBarrier:
         active = np.flatnonzero(J < self.j_hat)
         if len(active) == 0:
             return 0.0, grad, hess
-        b, db, d2b = barrier_function(J[active], self.j_hat)
+        b, db, d2b = barrier_function(J[active] - FLAT_J, self.j_hat - FLAT_J)
         w = self.weights[self.watched[active]]
         value = float(w @ b)
         if order < 1:

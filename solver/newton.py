@@ -22,6 +22,7 @@ stop once a step moves the body by less than a tolerance (its squared mass norm,
 [kg m^2]) or after ``max_iterations``.
 """
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -66,7 +67,7 @@ def hidden_decrease(slope, f):
     value f: f cannot judge such a step (``StepSolver._line_search``). Never at an infinite
     f (a start past a barrier): every finite trial is a decrease there, and the line search
     halves towards one."""
-    return bool(np.isfinite(f)) and -slope <= ROUNDING * abs(f)
+    return math.isfinite(f) and -slope <= ROUNDING * abs(f)
 
 
 class Damping(NamedTuple):
@@ -101,9 +102,28 @@ class StepSolver:
         value = model.evaluate(q, 0)[0] + self.potential.evaluate(s, 0)[0]
         return value + damping.value(s)
 
-    def minimise(self, model, s, damping, max_iterations=None, q=None, jacobian=None):
+    def minimise(self, model, s, damping, max_iterations=None, q=None, jacobian=None,
+                 feasible=None):
         """Newton / line search on s from the guess s (q: q(s), jacobian: dq/ds there, if
-        known); returns (s, q(s), iterations)."""
+        known); returns (s, q(s), iterations).
+
+        feasible: a start (s, q(s)) whose objective is known to be finite, e.g. the step's
+        start state. A barrier (inversion, contact) makes the objective infinite at a guess
+        past it, such as a predictor that overshoots; Newton from there moves by a finite model
+        of the barrier and may find no finite point at all, and would then end where it began,
+        past the barrier. It is then restarted from ``feasible``, inside the barrier, where the
+        line search keeps every iterate (an interior-point start). The iterations of both runs
+        are counted."""
+        s, q, iterations, f = self._minimise_from(model, s, damping, max_iterations, q,
+                                                  jacobian)
+        if feasible is None or math.isfinite(f):
+            return s, q, iterations
+        s, q, more, _ = self._minimise_from(model, feasible[0], damping, max_iterations,
+                                            feasible[1], None)
+        return s, q, iterations + more
+
+    def _minimise_from(self, model, s, damping, max_iterations, q, jacobian):
+        """``minimise`` from one start; returns (s, q(s), iterations, objective there)."""
         q = self.deformer.q(s) if q is None else q
         f = self.objective(model, s, q, damping)
         iterations, J, known = 0, None, jacobian
@@ -144,7 +164,7 @@ class StepSolver:
             s, q, f = s_new, q_new, f_new
             if small:
                 break
-        return s, q, iterations
+        return s, q, iterations, f
 
     def _q_gradient(self, s, g):
         """(dq/ds)^T g (m,) at s: the deformer's own product where it has one

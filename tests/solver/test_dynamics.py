@@ -661,6 +661,25 @@ def test_a_step_the_objectives_rounding_cannot_judge_is_taken():
     assert potential.evaluations < 40                       # the noise stayed a few ulps
 
 
+class Wall:
+    """V(s) = |s - t|^2 / 2 - log(1 - s_0) for s_0 < 1, and +inf past the wall s_0 >= 1, where
+    the gradient (s_0 - beyond, s_1) and unit Hessian are a finite model as a barrier gives
+    one (``inversion.barrier_function``): Newton from a guess past the wall follows it."""
+
+    rest_hessian = np.eye(2)
+
+    def __init__(self, target, beyond):
+        self.target, self.beyond = np.asarray(target, float), float(beyond)
+
+    def evaluate(self, s, order):
+        if s[0] >= 1.0:
+            return np.inf, np.array([s[0] - self.beyond, s[1]]), np.eye(2)
+        d = s - self.target
+        gap = 1.0 - s[0]
+        return (0.5 * float(d @ d) - np.log(gap), d + np.array([1.0 / gap, 0.0]),
+                np.eye(2) + np.diag([1.0 / gap ** 2, 0.0]))
+
+
 class TwoWalls:
     """V(s) = |s|^2 / 2 - log(1 - s_0^2) inside |s_0| < 1, +inf outside, where the model's
     gradient (4 s_0, s_1) sends Newton's full step past the other wall."""
@@ -673,6 +692,26 @@ class TwoWalls:
         gap = 1.0 - s[0] ** 2
         return (0.5 * float(s @ s) - np.log(gap), s + np.array([2.0 * s[0] / gap, 0.0]),
                 np.eye(2) + np.diag([(2.0 * gap + 4.0 * s[0] ** 2) / gap ** 2, 0.0]))
+
+
+def test_a_guess_past_a_barrier_restarts_from_the_feasible_start():
+    """A predictor past a barrier where Newton's model leads only further out: no finite
+    point is found from it, and without a feasible start the step ends where it began, past
+    the barrier. With the step's start as ``feasible`` it is restarted from there and reaches
+    the minimiser inside, s_0 = (3 - sqrt 5) / 2 (s_0 - 2 + 1 / (1 - s_0) = 0); a guess
+    that is itself feasible never uses it."""
+    potential = Wall(target=(2.0, 0.5), beyond=3.0)
+    solver = newton.StepSolver(reduced.LinearDeformer(2), potential, np.eye(2),
+                               step_tol2=1e-30, max_iterations=30)
+    damping = newton.Damping(np.zeros((2, 2)), np.zeros(2), np.zeros(2))
+    guess, start = np.array([2.0, 0.5]), np.zeros(2)
+    s, _, _ = solver.minimise(NoInertia(), guess, damping)
+    assert np.array_equal(s, guess) and potential.evaluate(s, 0)[0] == np.inf
+    s, q, iterations = solver.minimise(NoInertia(), guess, damping, feasible=(start, start))
+    np.testing.assert_allclose(s, [(3.0 - np.sqrt(5.0)) / 2.0, 0.5], rtol=0, atol=1e-12)
+    assert np.array_equal(q, s) and 1 < iterations <= 31
+    s, _, _ = solver.minimise(NoInertia(), start, damping, feasible=(guess, guess))
+    np.testing.assert_allclose(s, [(3.0 - np.sqrt(5.0)) / 2.0, 0.5], rtol=0, atol=1e-12)
 
 
 def test_a_start_past_a_barrier_halves_back_inside():

@@ -203,9 +203,9 @@ def record_steps(sim):
     taken = []
     inner = sim._take_step
 
-    def recorded():
+    def recorded(**options):
         taken.append(sim.dt)
-        return inner()
+        return inner(**options)
 
     sim._take_step = recorded
     return taken
@@ -246,6 +246,43 @@ def force_one_retry(sim):
         return real_check()
 
     sim._inverted_tets = fail_once
+
+
+def test_only_the_shortest_retake_restarts_from_the_steps_start():
+    """A step retaken down to dt / 2^MAX_STEP_SPLITS (its checks forced to fail) hands Newton
+    the state it starts from as a feasible restart there, and only there: longer retakes keep
+    halving (their trajectories unchanged), and the restart can only turn the shortest
+    retake's failure into a step (``newton.StepSolver.minimise``'s ``feasible``)."""
+    column = soft_column(2e5)
+    sim = column_simulation(column, column_potential(column, "LINEAR"), substeps=1)
+    real_check, forced = sim._inverted_tets, []
+
+    def fail_down_to_the_shortest():
+        if len(forced) < dynamics.MAX_STEP_SPLITS:
+            forced.append(True)
+            return 1, -1.0, True, real_check()[3]
+        return real_check()
+
+    sim._inverted_tets = fail_down_to_the_shortest
+    calls, minimise = [], sim.solver.minimise
+
+    def recorded(model, s, damping, *args, feasible=None, **kwargs):
+        start = (sim.state.pose.coords.copy(), sim.state.pose.q.copy())
+        calls.append((sim.dt, start, feasible))
+        return minimise(model, s, damping, *args, feasible=feasible, **kwargs)
+
+    sim.solver.minimise = recorded
+    sim.step()
+    h, shortest = 1.0 / FPS, 1.0 / FPS / 2 ** dynamics.MAX_STEP_SPLITS
+    assert [dt for dt, _, _ in calls[:dynamics.MAX_STEP_SPLITS + 1]] == pytest.approx(
+        [h / 2 ** k for k in range(dynamics.MAX_STEP_SPLITS + 1)])
+    for dt, start, feasible in calls:
+        if dt > 1.5 * shortest:
+            assert feasible is None
+        else:
+            assert all(np.array_equal(a, b) for a, b in zip(feasible, start))
+    assert sum(dt < 1.5 * shortest for dt, _, _ in calls) == 2     # the two shortest steps
+    assert sim.time == pytest.approx(h)
 
 
 def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
@@ -345,7 +382,8 @@ def test_reconstruction_barrier_gradient_matches_central_differences():
     g = np.array([(ratios.ratios(body["deformer"].q(s + h * e))[active]
                    - ratios.ratios(body["deformer"].q(s - h * e))[active]) / (2 * h)
                   for e in unit]).T                                         # (A, m)
-    _, _, d2b = inversion.barrier_function(J[active], barrier.j_hat)
+    _, _, d2b = inversion.barrier_function(J[active] - inversion.FLAT_J,
+                                           barrier.j_hat - inversion.FLAT_J)
     expected = g.T @ ((barrier.weights[active] * d2b)[:, None] * g)
     assert np.allclose(hess, expected, rtol=1e-4, atol=1e-6 * np.abs(expected).max())
     assert np.allclose(hess, hess.T) and np.linalg.eigvalsh(hess).min() >= -1e-9 * hess.max()
@@ -390,6 +428,31 @@ def test_reconstruction_barrier_is_zero_unwatched_and_near_rest_and_infinite_inv
     ratios = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
     assert ratios.ratios(body["deformer"].q(s)).min() <= 0.0
     assert np.isinf(barrier.evaluate(s, 0)[0])
+
+
+def test_reconstruction_barrier_wall_is_where_the_step_check_counts_a_tet_flat():
+    """Along a direction from rest, the pose where the smallest det F of the reconstruction
+    is half of FLAT_J (a tet the step check counts as flat, though not inverted) is infinite
+    for the barrier, and the one where it is twice FLAT_J is finite and positive: what the
+    barrier admits, the check passes (bisection on the scale for both)."""
+    body = coarse_column()
+    barrier = reconstruction_barrier(body)
+    ratios = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
+    direction = np.random.default_rng(5).normal(size=barrier.num_coords)
+    smallest = lambda scale: ratios.ratios(body["deformer"].q(scale * direction)).min()
+    scales = np.geomspace(1e-3, 1e2, 400)
+    outside = scales[np.argmax([smallest(scale) <= 0.0 for scale in scales])]
+    assert smallest(outside) <= 0.0
+    for wanted in (0.5 * inversion.FLAT_J, 2.0 * inversion.FLAT_J):
+        low, high = 0.0, outside                          # smallest(low) > wanted >= at high
+        for _ in range(60):
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if smallest(middle) > wanted else (low, middle)
+        J = smallest(high)
+        assert 0.0 < J <= wanted and J == pytest.approx(wanted, rel=1e-3)
+        value = barrier.evaluate(high * direction, 0)[0]
+        assert (np.isinf(value) if wanted < inversion.FLAT_J else 0.0 < value < np.inf)
+    assert dynamics.MIN_VOLUME_RATIO == inversion.FLAT_J
 
 
 def test_reconstruction_barrier_keeps_a_coarse_models_column_from_inverting():
