@@ -324,8 +324,9 @@ class Simulation:
         With ``tets``, each internal step is checked for inverted tets and a non-finite energy
         (an RS strain past the volume barrier of ``inversion``, e.g. from a predictor that
         overshot); a failing step is undone (the ``State`` copied before it is restored) and
-        retaken as two steps of half the length, recursively down to dt / 2^MAX_STEP_SPLITS;
-        past that ``InversionError``. Why halving: the predictor s_n + dt v_s and every Newton
+        retaken as two steps of half the length, recursively down to dt / 2^MAX_STEP_SPLITS,
+        where a step whose Newton ends past a barrier is solved again from its start
+        (``_take_step``'s restart); past that ``InversionError``. Why halving: the predictor s_n + dt v_s and every Newton
         iterate move less, so the barrier's line search can hold them, and most of the frame
         keeps its nominal dt. A step with contact none of whose start guesses is outside the
         colliders is retaken the same way (``ContactError`` past the smallest).
