@@ -40,7 +40,7 @@ from .body_contact import BodyContact, ContactError, ContactInertia, StartsInsid
 
 MAX_STEP_SPLITS = 4        # a step that inverts is retaken in halves, down to dt / 2^4
 MIN_VOLUME_RATIO = inversion.FLAT_J   # det F at or below this counts as inverted (flat or
-                                      # turned inside out): the reconstruction barrier's wall
+                                      # turned inside out), below the reconstruction barrier
 SUBSTEP_BOUND = 1.0        # largest dt * w_max of automatic substeps (module docstring)
 MAX_AUTO_SUBSTEPS = 64     # automatic substeps stop here; only top-mode accuracy suffers past it
 MAX_SUBSTEPS = 1000        # largest user override
@@ -343,9 +343,12 @@ class Simulation:
         self.iterations = total
         return total
 
-    def _checked_step(self, dt, splits, frame):
+    def _checked_step(self, dt, splits, frame, rewatched=False):
         """One internal step of length dt [s], retaken in halves if it inverts or if no start
-        guess of it is outside the colliders (a fast collider or keyed frame; ``step``)."""
+        guess of it is outside the colliders (a fast collider or keyed frame; ``step``). The
+        shortest is retaken once more at its own length (``rewatched``), now with the tets
+        that turned in it watched by the reconstruction barrier: a tet that went from above
+        WATCH_J to inside out within it had no barrier there."""
         if self._volumes is None and self.contact is None:
             return self._take_step()
         snapshot = self.state.copy()
@@ -367,6 +370,8 @@ class Simulation:
             self._watch(ratios, keep=True)     # the retried halves see the tets that turned
         self.state = snapshot
         if splits >= MAX_STEP_SPLITS:
+            if blocked is None and not rewatched:
+                return iterations + self._checked_step(dt, splits, frame, rewatched=True)
             if blocked is not None:
                 raise blocked
             raise InversionError(self.time, frame, count, self._volumes.num_tets, smallest, dt)

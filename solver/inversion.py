@@ -357,8 +357,10 @@ def with_barrier(potential, modal_rs, volumes, j_hat=J_HAT):
                                                                   volumes, j_hat))
 
 
-FLAT_J = 1e-3                 # det F at or below this counts as flat or inverted: the wall
-                              # of the reconstruction barrier and the step check's bound
+FLAT_J = 1e-3                 # det F at or below this counts as flat or inverted (the step
+                              # check's bound, ``dynamics.MIN_VOLUME_RATIO``)
+RECONSTRUCTION_WALL = 2e-3    # det F where the reconstruction barrier is infinite: above FLAT_J
+                              # by far more than the float32 check's rounding (1e-5)
 RECONSTRUCTION_J_HAT = 0.25   # det F of the reconstruction below which its barrier acts
 WATCH_J = 0.6                 # tets at or below this det F at a step's start are watched
 
@@ -385,11 +387,13 @@ class ReconstructionBarrier:
     (a tet above 0.6 at a step's start that reaches 0 within it is caught by the check, which
     adds it to the watch and retakes the step in halves). Nothing is watched until then.
 
-    Its wall is at det F = FLAT_J, not 0: the barrier is b(J - FLAT_J) with j_hat - FLAT_J
-    for j_hat, so what it admits is what the step check (``dynamics``) passes. With its wall
-    at 0, a tet pressed against it ended between 0 and FLAT_J, and the check undid the step
-    down to its shortest retake and stopped the simulation (the shared cow, pinned at its
-    feet at E = 5e4 Pa under gravity, at frame 18).
+    Its wall is at det F = RECONSTRUCTION_WALL, not 0: the barrier is b(J - wall) with
+    j_hat - wall for j_hat, so what it admits the step check (``dynamics``, which counts
+    det F <= FLAT_J as flat, in float32) passes. With its wall at 0, a tet pressed against it
+    ended between 0 and FLAT_J, and the check undid the step down to its shortest retake and
+    stopped the simulation (the shared cow, pinned at its feet at E = 5e4 Pa under gravity,
+    at frame 18); with its wall at FLAT_J itself, the check's rounding counted a tet held at
+    1.00001e-3 as 0.000999 (the soft column at E = 1e4 Pa).
 
     deformer: ``reduced.ReducedRS`` or ``LinearDeformer`` with its basis B (3N, rB);
     rest_positions X (N, 3) [m]; tets (E, 4); stiffness kappa [Pa] (a number or (E,)).
@@ -434,7 +438,8 @@ class ReconstructionBarrier:
         active = np.flatnonzero(J < self.j_hat)
         if len(active) == 0:
             return 0.0, grad, hess
-        b, db, d2b = barrier_function(J[active] - FLAT_J, self.j_hat - FLAT_J)
+        b, db, d2b = barrier_function(J[active] - RECONSTRUCTION_WALL,
+                                      self.j_hat - RECONSTRUCTION_WALL)
         w = self.weights[self.watched[active]]
         value = float(w @ b)
         if order < 1:

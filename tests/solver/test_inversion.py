@@ -187,6 +187,26 @@ def test_the_soft_column_never_inverts(column, kind):
         assert np.abs(volume - 1.0).max() < 0.05, f"volume range {volume.min()}..{volume.max()}"
 
 
+@pytest.mark.parametrize("youngs", [1e4, 5e3])
+def test_a_softer_column_with_both_barriers_stands_its_four_seconds(youngs):
+    """The column at a half and a quarter of E = 2e4 Pa, Linear, as Simulate runs it (the RS
+    barrier, the reconstruction barrier and the step check): it folds until tets press
+    against the reconstruction barrier, and must still run its 4 s with det F above the
+    check's FLAT_J on every tet at every frame (recomputed from the trajectory in float64).
+    It stopped with an InversionError (frames 36 and 46) while the barrier's wall was at 0 (a
+    tet held between 0 and FLAT_J counts as flat) and the shortest retake neither restarted
+    from the step's start nor watched the tets that had turned in it."""
+    body = soft_column(youngs)
+    stepping = dynamics.step_deformer(body["deformer"])
+    potential = inversion.with_reconstruction_barrier(column_potential(body, "LINEAR"),
+                                                      stepping, body["X"], body["T"])
+    sim = dynamics.Simulation(stepping, body["X"], body["masses"], potential, 1.0 / FPS,
+                              gravity=GRAVITY_UP, tets=body["T"])
+    ratios, _ = volume_ratios(body, sim.run(int(SECONDS * FPS)))
+    print(f"E = {youngs:g} Pa: min det F {ratios.min():.4f}")
+    assert ratios.min() > inversion.FLAT_J
+
+
 def test_the_soft_column_inverts_without_barrier(column):
     """Control: the same column without barrier or check does invert (StVK; see the module
     docstring for all three)."""
@@ -283,6 +303,46 @@ def test_only_the_shortest_retake_restarts_from_the_steps_start():
             assert all(np.array_equal(a, b) for a, b in zip(feasible, start))
     assert sum(dt < 1.5 * shortest for dt, _, _ in calls) == 2     # the two shortest steps
     assert sim.time == pytest.approx(h)
+
+
+def test_the_shortest_retake_is_taken_once_more_watching_what_turned():
+    """A failing shortest retake is taken once more at its own length, watching the tets
+    that turned in it (a tet above WATCH_J at its start had no reconstruction barrier there):
+    with checks forced to fail down to and including the first shortest step the frame still
+    completes, the extra step at dt / 16 sees the turned tets in the watch; one more forced
+    failure and it is an InversionError, with the state as before the frame."""
+    column = soft_column(2e5)
+    shortest = dynamics.MAX_STEP_SPLITS
+    for failures, completes in ((shortest + 1, True), (shortest + 2, False)):
+        potential = inversion.with_reconstruction_barrier(
+            column_potential(column, "LINEAR"), column["deformer"], column["X"], column["T"])
+        sim = column_simulation(column, potential, substeps=1)
+        real_check, forced, watched = sim._inverted_tets, [], []
+
+        def fail(failures=failures):
+            watched.append(7 in potential.barrier.watched)
+            if len(forced) < failures:
+                forced.append(True)
+                ratios = real_check()[3].copy()
+                ratios[7] = -0.5                             # tet 7 "turned"
+                return 1, -0.5, True, ratios
+            return real_check()
+
+        sim._inverted_tets = fail
+        taken = record_steps(sim)
+        h = 1.0 / FPS
+        if completes:
+            sim.step()
+            assert taken[:shortest + 2] == pytest.approx(
+                [h / 2 ** k for k in range(shortest + 1)] + [h / 2 ** shortest])
+            assert watched[shortest + 1]                # the extra step's check
+            assert not watched[0]
+            assert sim.time == pytest.approx(h)
+        else:
+            start = sim.coords.copy()
+            with pytest.raises(dynamics.InversionError):
+                sim.step()
+            assert len(taken) == shortest + 2 and np.array_equal(sim.coords, start)
 
 
 def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
@@ -382,8 +442,8 @@ def test_reconstruction_barrier_gradient_matches_central_differences():
     g = np.array([(ratios.ratios(body["deformer"].q(s + h * e))[active]
                    - ratios.ratios(body["deformer"].q(s - h * e))[active]) / (2 * h)
                   for e in unit]).T                                         # (A, m)
-    _, _, d2b = inversion.barrier_function(J[active] - inversion.FLAT_J,
-                                           barrier.j_hat - inversion.FLAT_J)
+    wall = inversion.RECONSTRUCTION_WALL
+    _, _, d2b = inversion.barrier_function(J[active] - wall, barrier.j_hat - wall)
     expected = g.T @ ((barrier.weights[active] * d2b)[:, None] * g)
     assert np.allclose(hess, expected, rtol=1e-4, atol=1e-6 * np.abs(expected).max())
     assert np.allclose(hess, hess.T) and np.linalg.eigvalsh(hess).min() >= -1e-9 * hess.max()
@@ -430,11 +490,12 @@ def test_reconstruction_barrier_is_zero_unwatched_and_near_rest_and_infinite_inv
     assert np.isinf(barrier.evaluate(s, 0)[0])
 
 
-def test_reconstruction_barrier_wall_is_where_the_step_check_counts_a_tet_flat():
-    """Along a direction from rest, the pose where the smallest det F of the reconstruction
-    is half of FLAT_J (a tet the step check counts as flat, though not inverted) is infinite
-    for the barrier, and the one where it is twice FLAT_J is finite and positive: what the
-    barrier admits, the check passes (bisection on the scale for both)."""
+def test_reconstruction_barrier_wall_is_above_where_the_step_check_counts_a_tet_flat():
+    """Along a direction from rest, the poses where the smallest det F of the reconstruction
+    is half of FLAT_J (a tet the step check counts as flat, though not inverted) and half way
+    from FLAT_J to the wall are infinite for the barrier, and the one just past the wall is
+    finite and positive: what the barrier admits, the check passes, with a margin far above
+    its float32 rounding (bisection on the scale for each)."""
     body = coarse_column()
     barrier = reconstruction_barrier(body)
     ratios = inversion.DeformedVolumes(body["X"], body["T"], body["deformer"].basis)
@@ -443,7 +504,9 @@ def test_reconstruction_barrier_wall_is_where_the_step_check_counts_a_tet_flat()
     scales = np.geomspace(1e-3, 1e2, 400)
     outside = scales[np.argmax([smallest(scale) <= 0.0 for scale in scales])]
     assert smallest(outside) <= 0.0
-    for wanted in (0.5 * inversion.FLAT_J, 2.0 * inversion.FLAT_J):
+    flat, wall = inversion.FLAT_J, inversion.RECONSTRUCTION_WALL
+    assert dynamics.MIN_VOLUME_RATIO == flat and wall - flat >= 100 * 1e-5
+    for wanted in (0.5 * flat, 0.5 * (flat + wall), 1.01 * wall):
         low, high = 0.0, outside                          # smallest(low) > wanted >= at high
         for _ in range(60):
             middle = 0.5 * (low + high)
@@ -451,8 +514,7 @@ def test_reconstruction_barrier_wall_is_where_the_step_check_counts_a_tet_flat()
         J = smallest(high)
         assert 0.0 < J <= wanted and J == pytest.approx(wanted, rel=1e-3)
         value = barrier.evaluate(high * direction, 0)[0]
-        assert (np.isinf(value) if wanted < inversion.FLAT_J else 0.0 < value < np.inf)
-    assert dynamics.MIN_VOLUME_RATIO == inversion.FLAT_J
+        assert (np.isinf(value) if wanted < wall else 0.0 < value < np.inf)
 
 
 def test_reconstruction_barrier_keeps_a_coarse_models_column_from_inverting():
