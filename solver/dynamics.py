@@ -326,10 +326,12 @@ class Simulation:
         overshot); a failing step is undone (the ``State`` copied before it is restored) and
         retaken as two steps of half the length, recursively down to dt / 2^MAX_STEP_SPLITS,
         where a step whose Newton ends past a barrier is solved again from its start
-        (``_take_step``'s restart); past that ``InversionError``. Why halving: the predictor s_n + dt v_s and every Newton
-        iterate move less, so the barrier's line search can hold them, and most of the frame
-        keeps its nominal dt. A step with contact none of whose start guesses is outside the
-        colliders is retaken the same way (``ContactError`` past the smallest).
+        (``_take_step``'s restart) and a failed one is taken once more with the tets that
+        turned in it watched (``_checked_step``); past that ``InversionError``. Why halving:
+        the predictor s_n + dt v_s and every Newton iterate move less, so the barrier's line
+        search can hold them, and most of the frame keeps its nominal dt. A step with contact
+        none of whose start guesses is outside the colliders is retaken the same way
+        (``ContactError`` past the smallest).
         """
         total = 0
         frame = int(round((self.time - self._start_time) / self.h)) + 1
