@@ -242,7 +242,7 @@ def test_a_rejected_step_is_retaken_as_two_half_steps():
     sim = column_simulation(column, potential, substeps=1)
     reference = column_simulation(column, potential, substeps=2)
     taken = record_steps(sim)
-    force_one_retry(sim)
+    force_failed_checks(sim, 1)
     sim.step()
     reference.step()
     h = 1.0 / FPS
@@ -255,17 +255,23 @@ def test_a_rejected_step_is_retaken_as_two_half_steps():
     assert taken[3:] == [h]
 
 
-def force_one_retry(sim):
-    """Make the first check of ``sim`` report one inverted tet; later checks are real."""
-    real_check, failed = sim._inverted_tets, []
+def force_failed_checks(sim, count, turned=None):
+    """Make the first ``count`` checks of ``sim`` report one inverted tet (with ``turned``, that
+    tet's det F at -0.5 among the real ones); later checks are real."""
+    real_check, forced = sim._inverted_tets, []
 
-    def fail_once():
-        if not failed:
-            failed.append(True)
-            return 1, -1.0, True, real_check()[3]
-        return real_check()
+    def check():
+        if len(forced) >= count:
+            return real_check()
+        forced.append(True)
+        ratios = real_check()[3]
+        if turned is None:
+            return 1, -1.0, True, ratios
+        ratios = ratios.copy()
+        ratios[turned] = -0.5
+        return 1, -0.5, True, ratios
 
-    sim._inverted_tets = fail_once
+    sim._inverted_tets = check
 
 
 def test_only_the_shortest_retake_restarts_from_the_steps_start():
@@ -275,15 +281,7 @@ def test_only_the_shortest_retake_restarts_from_the_steps_start():
     retake's failure into a step (``newton.StepSolver.minimise``'s ``feasible``)."""
     column = soft_column(2e5)
     sim = column_simulation(column, column_potential(column, "LINEAR"), substeps=1)
-    real_check, forced = sim._inverted_tets, []
-
-    def fail_down_to_the_shortest():
-        if len(forced) < dynamics.MAX_STEP_SPLITS:
-            forced.append(True)
-            return 1, -1.0, True, real_check()[3]
-        return real_check()
-
-    sim._inverted_tets = fail_down_to_the_shortest
+    force_failed_checks(sim, dynamics.MAX_STEP_SPLITS)
     calls, minimise = [], sim.solver.minimise
 
     def recorded(model, s, damping, *args, feasible=None, **kwargs):
@@ -317,18 +315,14 @@ def test_the_shortest_retake_is_taken_once_more_watching_what_turned():
         potential = inversion.with_reconstruction_barrier(
             column_potential(column, "LINEAR"), column["deformer"], column["X"], column["T"])
         sim = column_simulation(column, potential, substeps=1)
-        real_check, forced, watched = sim._inverted_tets, [], []
+        force_failed_checks(sim, failures, turned=7)
+        check, watched = sim._inverted_tets, []
 
-        def fail(failures=failures):
+        def observed(check=check, watched=watched, potential=potential):
             watched.append(7 in potential.barrier.watched)
-            if len(forced) < failures:
-                forced.append(True)
-                ratios = real_check()[3].copy()
-                ratios[7] = -0.5                             # tet 7 "turned"
-                return 1, -0.5, True, ratios
-            return real_check()
+            return check()
 
-        sim._inverted_tets = fail
+        sim._inverted_tets = observed
         taken = record_steps(sim)
         h = 1.0 / FPS
         if completes:
@@ -360,7 +354,7 @@ def test_implicit_euler_retry_keeps_a_free_bodys_velocities():
         sim.set_state(np.zeros(6), 0.5 * np.ones(6), linear_velocity=(1.0, 0.0, 0.0),
                       angular_velocity=(0.0, 2.0, 3.0))
     retried, reference = sims
-    force_one_retry(retried)
+    force_failed_checks(retried, 1)
     taken = record_steps(retried)
     retried.step()
     reference.step()
