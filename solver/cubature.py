@@ -26,8 +26,9 @@ Choices written down here:
 - Candidates: each block is a fresh random subset of the unpicked elements, scored by the
   cosine between their column and the residual (only positive correlations can help with
   w >= 0); the best few of them are kept for the block's picks. With a ``screen`` (the
-  reduced RS cubature: ``reduced.RemainderScreen``) the subset is scored without forming its
-  columns, and only those best few are formed.
+  reduced RS cubature: ``reduced.RemainderScreen``; the energy cubature: ``StoredScreen``, a
+  float32 copy of every column) the subset, or every unpicked element, is scored without
+  forming its columns, and only those best few are formed.
 - Picks whose NNLS weight ends at 0 are dropped from the returned cubature.
 """
 
@@ -227,6 +228,22 @@ def _picks_from_block(fit, block, pool, available, count, tol, history):
         fit.refit(exact=True)
         history[-1] = fit.exact_residual()
     return picked
+
+
+class StoredScreen:
+    """``greedy_nnls``'s screen from a stored copy of every column (n, K), typically float32:
+    the cosine of each with the residual, one (n,) by (n, K) product per block. The copy only
+    ranks the candidates; ``greedy_nnls`` forms the best few exactly and they decide."""
+
+    def __init__(self, columns):
+        self.columns = columns
+        self.norms = np.maximum(np.sqrt(np.einsum("ij,ij->j", columns, columns,
+                                                  dtype=np.float64)), 1e-300)
+
+    def __call__(self, residual, indices):
+        """(k,) cosines (up to |residual|) of the columns ``indices`` (k,) with residual (n,)."""
+        scores = np.asarray(residual).astype(self.columns.dtype) @ self.columns
+        return scores[indices] / self.norms[indices]
 
 
 class _IncrementalNNLS:

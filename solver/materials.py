@@ -35,7 +35,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from . import cubature, rs
+from . import cubature, rs, threads
 
 # (E, 6) strain -> (E, 3, 3) matrix: entry (i, j) of the symmetric matrix is component FULL[3i+j].
 _FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
@@ -403,7 +403,9 @@ def prepare_potential(material, modal_rs, volumes, eigenvalues=None, num_poses=2
     return potential, dict(tets=tets, weights=weights, relative_residual=info["relative_residual"])
 
 
-DENSE_COLUMNS = 4_000_000   # training matrices up to this many entries (32 MB) are built whole
+STORED_COLUMNS = 64_000_000   # training matrices up to this many entries (256 MB in float32)
+                              # are computed once, and every tet is scored at every pick
+COLUMN_CHUNK = 512            # tets whose columns are computed at once (bounds temporaries)
 
 
 def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets=300,
@@ -415,45 +417,88 @@ def train_energy_cubature(material, modal_rs, volumes, poses, tol=1e-2, max_tets
     exact reduced force grad V(s_t) (m,) and energy V(s_t), each divided by its own norm so
     every pose and both kinds count alike (An et al. 2008 fit forces; the energy row keeps the
     line search's objective consistent with them). Tet e's column holds its own contribution
-    V_e [U_e^T dpsi_e, psi_e] under the same scaling; ``cubature.greedy_nnls`` picks the tets,
-    ``picks_per_block`` picks from each block of ``candidates`` random tets (columns computed
-    on demand unless the whole matrix is small). One by default: measured on the 12k-tet bar
-    (200 poses and tets), 12 picks a block trained StVK as well in a sixth of the time, but
-    Fung's residual rose from 1.6e-2 to 6.3e-2 (its exponential puts a bent pose's energy in
-    a few tets that fewer random blocks miss), and with StVK's cubature so trained the standing
-    column of tests/solver/test_inversion.py lost 5.2 % of its volume (4.1 % with one pick a
-    block; the test bounds it at 5 %). progress: optional callable(fraction,
-    message), called between poses and between blocks of picks; an exception it raises (a
-    cancel) stops the training.
+    V_e [U_e^T dpsi_e, psi_e] under the same scaling; ``cubature.greedy_nnls`` picks the tets.
+
+    Where the training matrix (F (m + 1), E) has at most STORED_COLUMNS entries, every column
+    is computed once (one material evaluation per tet and pose, which also sums to the exact
+    targets) and kept in float32, and each pick scores every unpicked tet against the residual
+    with one product (``cubature.StoredScreen``); the best few are formed exactly. A body of
+    more tets draws ``candidates`` random tets per block and forms their columns, as An et al.
+    do: a column costs F material evaluations, so on the 12k-tet bar (200 poses, about 200
+    picks) blocks of 500 took 13.6 s for StVK, the stored columns 5.0 s, and they choose each
+    pick among all tets (``bench/run_bench.py``, dynamics). ``picks_per_block`` picks from one scoring; one by
+    default (with random blocks, 12 a block trained StVK in a sixth of the time but raised
+    Fung's residual fourfold: its exponential puts a bent pose's energy in a few tets).
+    progress: optional callable(fraction, message), called between chunks of tets or poses
+    and between blocks of picks; an exception it raises (a cancel) stops the training.
 
     Returns tets (C,), weights (C,) > 0 and info dict (``history``, ``relative_residual``).
     """
     modal_rs = np.asarray(modal_rs, dtype=np.float64)
     volumes = np.abs(np.asarray(volumes, dtype=np.float64))
     Z = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    exact = ReducedPotential.exact(material, modal_rs, volumes)
-    rows = np.empty((len(Z), exact.num_coords + 1))                          # (F, m + 1)
-    for t, z in enumerate(Z):       # one all-tet evaluation per pose: report (and cancel) between
-        if progress is not None:
-            progress(0.1 * t / len(Z), f"exact forces of training pose {t + 1}/{len(Z)}")
-        rows[t] = _pose_row(exact, z)
+    strain_modes = modal_rs[:, 3:, :]
+    num_tets, num_rows = len(volumes), len(Z) * (strain_modes.shape[2] + 1)
+    if num_rows * num_tets <= STORED_COLUMNS:
+        stored, rows = _all_columns(material, strain_modes, volumes, Z, progress)
+    else:
+        stored, rows = None, _exact_rows(material, modal_rs, volumes, Z, progress)
     scale = np.concatenate([np.repeat(np.maximum(np.linalg.norm(rows[:, :-1], axis=1), 1e-300)
-                                      [:, None], exact.num_coords, axis=1),
+                                      [:, None], rows.shape[1] - 1, axis=1),
                             np.maximum(np.abs(rows[:, -1:]), 1e-300)], axis=1)
     target = (rows / scale).reshape(-1)
-    strain_modes = modal_rs[:, 3:, :]
 
     def columns(tets):
         return _tet_columns(material, tets, strain_modes[tets], volumes[tets], Z, scale)
 
-    if target.size * len(volumes) <= DENSE_COLUMNS:       # small: every column once, up front
-        columns = columns(np.arange(len(volumes)))
+    screen = None
+    if stored is not None:
+        stored /= scale.reshape(-1, 1).astype(np.float32)
+        screen, candidates = cubature.StoredScreen(stored), None
     inner = None if progress is None else (lambda f, msg: progress(0.1 + 0.9 * f, msg))
     tets, weights, history = cubature.greedy_nnls(columns, target, tol=tol, max_picks=max_tets,
                                                   candidates=candidates, rng=rng,
-                                                  num_columns=len(volumes), progress=inner,
-                                                  picks_per_block=picks_per_block)
+                                                  num_columns=num_tets, progress=inner,
+                                                  picks_per_block=picks_per_block,
+                                                  screen=screen)
     return tets, weights, dict(history=history, relative_residual=history[-1])
+
+
+def _exact_rows(material, modal_rs, volumes, Z, progress):
+    """[grad V(s_t), V(s_t)] (F, m + 1) of poses Z (F, m), one all-tet evaluation each."""
+    exact = ReducedPotential.exact(material, modal_rs, volumes)
+    rows = np.empty((len(Z), exact.num_coords + 1))
+    for t, z in enumerate(Z):       # report (and cancel) between poses
+        if progress is not None:
+            progress(0.1 * t / len(Z), f"exact forces of training pose {t + 1}/{len(Z)}")
+        rows[t] = _pose_row(exact, z)
+    return rows
+
+
+def _all_columns(material, strain_modes, volumes, Z, progress):
+    """Every tet's unscaled column (F (m + 1), E) in float32, and their sum in float64, the
+    exact rows [grad V(s_t), V(s_t)] (F, m + 1): COLUMN_CHUNK tets per call on threads, a
+    fixed split and sums added in order, so the result is the same on any number of them."""
+    num_tets, (F, m) = len(volumes), Z.shape
+    stored = np.empty((F * (m + 1), num_tets), dtype=np.float32)
+    rows = np.zeros(F * (m + 1))
+    unit = np.ones((F, m + 1))
+
+    def fill(part):
+        tets = np.arange(part.start, part.stop)
+        block = _tet_columns(material, tets, strain_modes[tets], volumes[tets], Z, unit)
+        stored[:, part] = block
+        return block.sum(axis=1)
+
+    chunks = threads.fixed_parts(num_tets, COLUMN_CHUNK)
+    group = 2 * threads.worker_count()
+    for first in range(0, len(chunks), group):      # report (and cancel) between groups
+        if progress is not None:
+            progress(0.1 * first / len(chunks), f"training columns of tets "
+                                                f"{chunks[first].start + 1}-{num_tets}")
+        for sums in threads.ordered_map(fill, chunks[first:first + group]):
+            rows += sums
+    return stored, rows.reshape(F, m + 1)
 
 
 def _pose_row(potential, s):

@@ -181,14 +181,20 @@ def test_reduced_nonlinear_potential_is_stiffer_at_large_deformation(bar, materi
     assert e_nl > e_lin and g_nl[0] > g_lin[0]
 
 
+@pytest.mark.parametrize("stored", [True, False], ids=["stored", "random-blocks"])
 @pytest.mark.parametrize("material, degrees, max_tets", [(ALL[1], 90.0, 60), (ALL[2], 60.0, 150)],
                          ids=IDS[1:])
-def test_energy_cubature_reproduces_held_out_forces(bar, material, degrees, max_tets):
-    """Trained on 100 poses, checked on 30 others of the same kind (bending up to ``degrees``).
+def test_energy_cubature_reproduces_held_out_forces(bar, material, degrees, max_tets, stored,
+                                                    monkeypatch):
+    """Trained on 100 poses, checked on 30 others of the same kind (bending up to ``degrees``),
+    with every column stored and every tet scored, and (a body too large to store them) with
+    random blocks of candidates.
 
     Fung's exponential concentrates the energy of a strongly bent pose in its few most
     strained tets, so its cubature needs more tets and its worst pose is off by more.
     """
+    if not stored:
+        monkeypatch.setattr(materials, "STORED_COLUMNS", 0)
     tets, weights, info = materials.train_energy_cubature(
         material, bar["modal_rs"], bar["volumes"], rotation_scaled_poses(bar, 100, degrees, 7),
         tol=1e-3, max_tets=max_tets, rng=np.random.default_rng(8))
@@ -207,6 +213,84 @@ def test_energy_cubature_reproduces_held_out_forces(bar, material, degrees, max_
     assert np.all(weights > 0)
     assert len(tets) <= max_tets < len(bar["T"])
     assert np.all(median < 0.01) and np.all(worst < 0.15)
+
+
+def tet_column(material, bar, tet, poses, scale):
+    """Tet ``tet``'s column [grad V_e, V_e] / scale over ``poses``, from a one-tet potential
+    (an independent path to ``materials._tet_columns``)."""
+    one = materials.ReducedPotential.cubature(material, bar["modal_rs"], bar["volumes"], [tet],
+                                              [1.0])
+    return np.concatenate([materials._pose_row(one, s) for s in poses] / scale).reshape(-1)
+
+
+@pytest.mark.parametrize("material", ALL[1:], ids=IDS[1:])
+def test_energy_cubature_first_pick_is_the_best_of_every_tet(bar, material):
+    """With the columns stored, the first pick is the tet whose column has the largest cosine
+    with the target among all tets (the greedy's choice; a random block of 50 candidates
+    would see a few of the 648): cosines computed tet by tet from one-tet potentials, the
+    target from the exact sum."""
+    poses = rotation_scaled_poses(bar, 12, 60.0, 3)
+    exact = materials.ReducedPotential.exact(material, bar["modal_rs"], bar["volumes"])
+    rows = np.array([materials._pose_row(exact, s) for s in poses])
+    scale = np.concatenate([np.repeat(np.linalg.norm(rows[:, :-1], axis=1)[:, None], 8, axis=1),
+                            np.abs(rows[:, -1:])], axis=1)
+    target = (rows / scale).reshape(-1)
+    cosines = []
+    for tet in range(len(bar["T"])):
+        column = tet_column(material, bar, tet, poses, scale)
+        cosines.append(target @ column / np.linalg.norm(column))
+    tets, _, _ = materials.train_energy_cubature(material, bar["modal_rs"], bar["volumes"],
+                                                 poses, tol=1e-6, max_tets=1, candidates=50,
+                                                 rng=np.random.default_rng(0))
+    print(f"picked {tets}, best {np.argmax(cosines)} (score {max(cosines):.4f}); "
+          f"the picked one's {cosines[tets[0]]:.4f}")
+    assert tets[0] == np.argmax(cosines)
+
+
+def test_energy_cubature_columns_sum_to_the_exact_forces_on_any_number_of_threads(
+        bar, monkeypatch):
+    """The stored columns (computed in chunks on threads) sum to the exact all-tet force and
+    energy of every pose, each matches its one-tet potential to float32 rounding, and one
+    thread gives the same training bit for bit."""
+    material = ALL[2]
+    poses = rotation_scaled_poses(bar, 10, 60.0, 4)
+    monkeypatch.setattr(materials, "COLUMN_CHUNK", 100)          # several chunks, some parallel
+    stored, rows = materials._all_columns(material, bar["modal_rs"][:, 3:, :],
+                                          np.abs(bar["volumes"]), poses, None)
+    exact = materials.ReducedPotential.exact(material, bar["modal_rs"], bar["volumes"])
+    want = np.array([materials._pose_row(exact, s) for s in poses])
+    np.testing.assert_allclose(rows, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+    unit = np.ones_like(want)
+    for tet in (0, 101, len(bar["T"]) - 1):
+        column = tet_column(material, bar, tet, poses, unit)
+        np.testing.assert_allclose(stored[:, tet], column, rtol=1e-6,
+                                   atol=1e-6 * np.abs(column).max())
+
+    def train():
+        return materials.train_energy_cubature(material, bar["modal_rs"], bar["volumes"], poses,
+                                               tol=1e-4, max_tets=40,
+                                               rng=np.random.default_rng(0))
+    many = train()
+    monkeypatch.setattr(cubature.threads, "worker_count", lambda: 1)
+    one = train()
+    np.testing.assert_array_equal(one[0], many[0])
+    np.testing.assert_array_equal(one[1], many[1])
+
+
+def test_energy_cubature_training_stops_when_its_progress_raises(bar):
+    """A cancel (an exception from ``progress``) during the stored columns stops the training
+    there: no pick is made."""
+    calls = []
+
+    def progress(fraction, message):
+        calls.append(message)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        materials.train_energy_cubature(ALL[1], bar["modal_rs"], bar["volumes"],
+                                        rotation_scaled_poses(bar, 10, 60.0, 4),
+                                        progress=progress)
+    assert len(calls) == 1 and calls[0].startswith("training columns")
 
 
 def test_prepare_potential_is_exact_for_linear_and_a_cubature_otherwise(bar):
