@@ -196,9 +196,14 @@ def prepare_stages(V, F):
     P, G, closed = stage("proxy", lambda: preparation.mesher_surface(V, F, meshing))
     X, T = stage("tetrahedralize", lambda: preparation.tet_mesh(P, G, meshing))
     tet_body = stage("embed", lambda: preparation.embedded(X, T, V))
-    linear = stage("modes", lambda: preparation.linear_modes(tet_body, 1e6, 0.45, 1000.0, 20))
-    deformer = stage("reduced", lambda: preparation.reduced_deformer(
-        tet_body, linear, 1000.0, preparation.ReducedSettings()))
+    if hasattr(preparation, "deformer_at"):     # the stages at 1 Pa and 1 kg/m^3, as Prepare
+        unit = stage("modes", lambda: preparation.unit_stiffness_modes(tet_body, 0.45, 20))
+        deformer = stage("reduced", lambda: preparation.reduced_deformer(
+            tet_body, unit, preparation.ReducedSettings()))
+    else:                                       # a solver before them (--baseline)
+        linear = stage("modes", lambda: preparation.linear_modes(tet_body, 1e6, 0.45, 1000.0, 20))
+        deformer = stage("reduced", lambda: preparation.reduced_deformer(
+            tet_body, linear, 1000.0, preparation.ReducedSettings()))
     return dict(triangles=len(F), proxy_triangles=len(G), simplified=closed and len(G) < len(F),
                 nodes=len(X), tets=len(T), basis_size=deformer.basis_size,
                 cubature_tets=len(deformer.cubature_tets), seconds=seconds,

@@ -2,20 +2,23 @@
 
 Stage 1 (tets): fTetWild tet mesh of the evaluated mesh + embedding of the base mesh's vertices.
 Stage 2 (modes): stiffness, lumped mass and linear modes for the material and pins, at Young's
-modulus 1 Pa (`preparation.unit_stiffness_modes`); the body's modes are these with their
-eigenvalues scaled to its Young's modulus, so a change of Young's modulus reuses stages 2 and 3.
-Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates).
+modulus 1 Pa and density 1 kg/m³ (`preparation.unit_stiffness_modes`); the body's modes are these
+moved to its Young's modulus and density (`preparation.modes_at`), so a change of either reuses
+stages 2 and 3.
+Stage 3 (reduced): the reduced RS basis and its cubature (the deformer every solve evaluates),
+of the modes at 1 Pa and 1 kg/m³, moved to the body's density (`preparation.deformer_at`).
 Stage 4 (energy, StVK and Fung only): the energy cubature of the material's reduced potential
 (`solver.materials.prepare_potential`). Linear needs none (its potential is an exact quadratic
 form), so it has no such stage and writes no file.
 
 Keys are content addresses. The tets key hashes the surface and the mesher settings; the modes
 key hashes the tet mesh *actually used* (its arrays) with the material but for Young's modulus
-(Poisson's ratio, density, a painted one's stiffness group weights and ratio) and pins; the
+and density (Poisson's ratio, a painted one's stiffness group weights and ratio) and pins; the
 reduced key hashes the modes' arrays with the reduced settings; the energy key hashes the tets'
 and the modes' arrays and a painted body's per-tet stiffness (what the cubature is trained on)
 with the material kind, every material parameter it is trained with but Young's modulus
-(Poisson's ratio, and the stiffening for Fung only) and the training settings: it is trained at
+(Poisson's ratio, the density, whose modal coordinates it is trained in, and the stiffening for
+Fung only) and the training settings: it is trained at
 1 Pa and serves every modulus (`preparation.energy_potential`). So stages of
 different runs can never mix. Each stage is looked up in memory, then in its cache file
 (`stage_cache`), and computed only if neither has it.
@@ -42,7 +45,7 @@ from .scene import InputError
 # How the energy cubature is trained; part of its key.
 ENERGY_TRAINING = preparation.ENERGY_TRAINING
 # Version of what the energy key leaves out; bump it when that changes.
-ENERGY_RULES = "energy-2: trained at Young's modulus 1 Pa"
+ENERGY_RULES = "energy-3: trained at Young's modulus 1 Pa, in the modes at the body's density"
 
 # Version of the automatic basis and cubature sizing and training range (solver.reduced): a
 # reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
@@ -53,7 +56,7 @@ REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
 PIN_RULES = "surface pins 2: faces clamp by their tet-surface facets"
 
 # Version of what the modes stage holds; part of its key. Bump it when that changes.
-MODES_RULES = "modes 2: at Young's modulus 1 Pa, eigenvalues scaled by the body's"
+MODES_RULES = "modes 3: at Young's modulus 1 Pa and density 1 kg/m^3, moved to the body's"
 
 # Version of the painted stiffness rule (solver.preparation.stiffness_scale); part of a painted
 # body's modes key. Bump it when the rule changes.
@@ -108,14 +111,14 @@ class BodyInputs:
                                  ("proxy", self.proxy_triangles))
 
     def modes_key(self, tets_digest):
-        """Key of the modes (at Young's modulus 1 Pa) of the tet mesh whose arrays hash to
-        tets_digest: Young's modulus is not in it (``preparation.unit_stiffness_modes``)."""
+        """Key of the modes (at Young's modulus 1 Pa and density 1 kg/m³) of the tet mesh whose
+        arrays hash to tets_digest: neither is in it (``preparation.unit_stiffness_modes``)."""
         pins = (PIN_RULES, self.pin_weights, self.base_triangles, self.pins_hold_volume) \
             if self.pin_weights is not None else "free"
         painted = () if self.stiffness_weights is None else (
             (STIFFNESS_RULES, self.stiffness_weights, self.stiffness_ratio),)
         return cache.content_key("modes", MODES_RULES, tets_digest, pins, self.poisson,
-                                 self.density, self.num_modes, *painted)
+                                 self.num_modes, *painted)
 
     def reduced_key(self, modes_digest):
         return cache.content_key("reduced", REDUCED_RULES, modes_digest, self.basis_size,
@@ -130,6 +133,7 @@ class EnergyInputs:
     kind: str                  # "STVK" or "FUNG"
     youngs: float              # [Pa] (at weight 1 of a stiffness group)
     poisson: float
+    density: float             # [kg/m^3]: the body's modal coordinates depend on it
     fung_stiffening: float     # dimensionless; only Fung reads it
     material: object = None    # the prepared body's (``for_body``): a cubature is trained for it
 
@@ -137,9 +141,10 @@ class EnergyInputs:
     def parameters(self):
         """The material parameters the cubature depends on (not Young's modulus: it is trained
         at 1 Pa; Fung's stiffening for Fung only: StVK's cubature does not read it, so changing
-        it reuses StVK's file)."""
+        it reuses StVK's file; the density, since it is trained in the body's modal
+        coordinates, ``preparation.energy_potential``)."""
         stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
-        return (ENERGY_RULES, self.poisson) + stiffening
+        return (ENERGY_RULES, self.poisson, self.density) + stiffening
 
     def for_body(self, body):
         """These inputs with the material of the PreparedBody (its painted stiffness, if any)."""
@@ -162,7 +167,8 @@ def energy_inputs(obj):
     if settings.material_model == 'LINEAR':
         return None
     return EnergyInputs(obj.name, stage_cache.cache_dirs(), settings.material_model,
-                        settings.youngs_modulus, settings.poisson_ratio, settings.fung_stiffening)
+                        settings.youngs_modulus, settings.poisson_ratio, settings.density,
+                        settings.fung_stiffening)
 
 
 def rest_surface(obj, depsgraph):
@@ -362,8 +368,9 @@ def stiffness_scale(inputs, tet_body):
 
 
 def modes_stage(inputs, tet_body, job, tets_digest, pins, scale=None):
-    """Linear modes at Young's modulus 1 Pa for the pins (``surface_pins``; None for a free body)
-    and the rest of the material, a painted body's per-tet stiffness ``scale`` (E,) included:
+    """Linear modes at Young's modulus 1 Pa and density 1 kg/m³ for the pins (``surface_pins``;
+    None for a free body) and the rest of the material, a painted body's per-tet stiffness
+    ``scale`` (E,) included:
     from memory, the disk cache, or eigsh (``preparation.unit_stiffness_modes``)."""
 
     def compute():
@@ -373,7 +380,7 @@ def modes_stage(inputs, tet_body, job, tets_digest, pins, scale=None):
         stage_cache.stats["modes"] += 1
         try:
             return preparation.unit_stiffness_modes(
-                tet_body, inputs.poisson, inputs.density, inputs.num_modes,
+                tet_body, inputs.poisson, inputs.num_modes,
                 None if pins is None else pins.nodes, stiffness_scale=scale,
                 progress=lambda f, message: job.step(0.55 + 0.15 * f, f"{title}: {message}"))
         except ValueError as exc:
@@ -386,10 +393,10 @@ def modes_stage(inputs, tet_body, job, tets_digest, pins, scale=None):
                                       compute, job, fits)
 
 
-def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.99):
-    """The reduced RS deformer: from memory, the disk cache, or basis + cubature training
-    (its progress runs from 0.72 to `end`)."""
-    modes_digest = modes_digest or stage_cache.digest("modes", linear_modes)
+def reduced_stage(inputs, tet_body, unit_modes, job, modes_digest=None, end=0.99):
+    """The reduced RS deformer of the modes at 1 Pa and 1 kg/m³ (``modes_stage``): from memory,
+    the disk cache, or basis + cubature training (its progress runs from 0.72 to `end`)."""
+    modes_digest = modes_digest or stage_cache.digest("modes", unit_modes)
 
     def compute():
         _refuse_unless_computing(inputs.object_name, inputs.cached_only,
@@ -397,7 +404,7 @@ def reduced_stage(inputs, tet_body, linear_modes, job, modes_digest=None, end=0.
         job.step(0.72, "Reduced RS: training poses")
         stage_cache.stats["reduced"] += 1
         return preparation.reduced_deformer(
-            tet_body, linear_modes, inputs.density, inputs.reduced_settings,
+            tet_body, unit_modes, inputs.reduced_settings,
             progress=lambda f, message: job.step(0.72 + (end - 0.72) * f, f"Reduced RS: {message}"))
 
     def fits(d):
@@ -472,11 +479,12 @@ def prepare(inputs, job):
     scale = stiffness_scale(inputs, tet_body)
     unit_modes = modes_stage(inputs, tet_body, job, tets_digest, pins, scale)
     modes_digest = stage_cache.digest("modes", unit_modes)
-    deformer = reduced_stage(inputs, tet_body, unit_modes, job, modes_digest,
-                             end=0.99 if inputs.energy is None else 0.9)
+    unit_deformer = reduced_stage(inputs, tet_body, unit_modes, job, modes_digest,
+                                  end=0.99 if inputs.energy is None else 0.9)
     keys = (inputs.tets_key, inputs.modes_key(tets_digest), inputs.reduced_key(modes_digest))
     try:
-        linear_modes = preparation.modes_at(unit_modes, inputs.youngs)
+        linear_modes = preparation.modes_at(unit_modes, inputs.youngs, inputs.density)
+        deformer = preparation.deformer_at(unit_deformer, inputs.density)
     except ValueError as exc:
         raise InputError(f"'{inputs.object_name}': {exc}") from None
     body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest),

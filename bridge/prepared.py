@@ -9,7 +9,7 @@ import collections
 from . import bodies, staleness
 from .scene import InputError
 
-_BODIES = collections.OrderedDict()   # (prepared key, reduced key, E) -> PreparedBody
+_BODIES = collections.OrderedDict()   # (prepared key, reduced key, E, rho) -> PreparedBody
 _LIMIT = 8
 
 
@@ -19,8 +19,10 @@ def for_object(obj):
     if staleness.stale_reason(obj, cached=True):
         return None
     settings = obj.rs_elastic
-    # Young's modulus is not in the prepared key (the modes are cached at 1 Pa and scaled).
-    key = (settings.prepared_key, settings.reduced_key, settings.youngs_modulus)
+    # Young's modulus and density are not in the prepared key (the modes are cached at 1 Pa
+    # and 1 kg/m^3 and moved to them).
+    key = (settings.prepared_key, settings.reduced_key, settings.youngs_modulus,
+           settings.density)
     if key in _BODIES:
         _BODIES.move_to_end(key)
         return _BODIES[key]

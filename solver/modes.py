@@ -68,10 +68,13 @@ class LinearModes:
         """Minimal natural frequency sqrt(lambda_1) in rad/s ([P15]'s nonlinearity indicator)."""
         return float(np.sqrt(max(self.eigenvalues[0], 0.0)))
 
-    def scaled(self, factor):
-        """These modes for the stiffness K times ``factor`` > 0 (M unchanged): the same vectors,
-        the eigenvalues times ``factor`` (K w = lambda M w gives (f K) w = (f lambda) M w)."""
-        return LinearModes(self.eigenvalues * float(factor), self.vectors, self.pinned_nodes)
+    def for_material(self, youngs, density):
+        """These modes, computed at Young's modulus 1 Pa and density 1 kg/m^3, for a body of
+        Young's modulus ``youngs`` [Pa] and uniform density ``density`` [kg/m^3] (both > 0).
+        K is linear in E and M in rho: K w = lambda M w gives (E K) w' = lambda' (rho M) w'
+        with lambda' = lambda E / rho and w' = w / sqrt(rho), mass-normalised in rho M."""
+        return LinearModes(self.eigenvalues * (float(youngs) / float(density)),
+                           self.vectors * (1.0 / np.sqrt(float(density))), self.pinned_nodes)
 
     def to_arrays(self):
         """dict of numpy arrays for ``cache.save``."""

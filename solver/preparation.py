@@ -4,11 +4,13 @@
    ``proxy``) and its tet mesh (``tetmesh``), with the render mesh embedded (``embed``).
 2. ``surface_pins``: the pinned nodes and the embedding that holds pinned vertices
    (``embed.pin_surface``).
-3. ``unit_stiffness_modes``: stiffness, lumped masses and the modes for the pins, Poisson's
-   ratio and density at Young's modulus 1 Pa (a painted material's per-tet scale comes from
-   ``stiffness_scale``); ``modes_at`` scales their eigenvalues to the body's Young's modulus,
-   so a change of Young's modulus alone computes nothing again (``linear_modes``: both).
-4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``).
+3. ``unit_stiffness_modes``: stiffness, lumped masses and the modes for the pins and
+   Poisson's ratio at Young's modulus 1 Pa and density 1 kg/m^3 (a painted material's per-tet
+   scale comes from ``stiffness_scale``); ``modes_at`` moves them to the body's Young's
+   modulus and density, so a change of either alone computes nothing again (``linear_modes``:
+   both).
+4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``) of those modes;
+   ``deformer_at`` moves it to the body's density.
 5. ``energy_potential``: the energy cubature of a StVK or Fung material (``materials``).
 
 Each stage is a plain function of the one before, so the Blender layer can cache each result
@@ -101,46 +103,53 @@ def stiffness_scale(tet_body, vertex_weights, ratio):
     return fem.painted_youngs(1.0, ratio, tet_weights(tet_body, vertex_weights))
 
 
-def unit_stiffness_modes(tet_body, poisson, density, count, pinned=None, stiffness_scale=None,
+def unit_stiffness_modes(tet_body, poisson, count, pinned=None, stiffness_scale=None,
                          progress=lambda fraction, message: None):
     """``modes.LinearModes`` of the tet body at Young's modulus 1 Pa (times a painted body's
     per-tet ``stiffness_scale`` (E,), ``PreparedBody.stiffness_scale``), Poisson's ratio and
-    density [kg/m^3], with the nodes ``pinned`` (p,) held (None: free); progress as in
+    density 1 kg/m^3, with the nodes ``pinned`` (p,) held (None: free); progress as in
     ``modes.linear_modes``.
 
-    K is linear in Young's modulus and M does not depend on it, so the modes at E are these
-    with their eigenvalues times E (``LinearModes.scaled``) and the very same vectors: a
-    change of Young's modulus reuses them, and everything built on the vectors (the reduced
-    stage), instead of computing them again.
+    K is linear in Young's modulus and M in a uniform density, so the modes of a body are
+    these with their eigenvalues times E / rho and their vectors times 1 / sqrt(rho)
+    (``modes_at``): a change of Young's modulus or density reuses them, and the reduced stage
+    built on them (``deformer_at``), instead of computing them again.
     ValueError when the pins hold every node or the material is not stable."""
     if pinned is not None and len(pinned) >= len(tet_body.nodes):
         raise ValueError("the pins hold every tet node: nothing is left free to move")
     scale = 1.0 if stiffness_scale is None else stiffness_scale
     K = fem.stiffness_matrix(tet_body.nodes, tet_body.tets, scale, poisson)
-    return modes.linear_modes(K, tet_body.lumped_masses(density), count, pinned,
+    return modes.linear_modes(K, tet_body.lumped_masses(1.0), count, pinned,
                               rest_positions=tet_body.nodes, progress=progress)
 
 
 def linear_modes(tet_body, youngs, poisson, density, count, pinned=None, stiffness_scale=None,
                  progress=lambda fraction, message: None):
     """``modes.LinearModes`` for Young's modulus ``youngs`` [Pa] (a painted body's at weight 1,
-    its per-tet ``stiffness_scale`` (E,) times that): ``unit_stiffness_modes``, scaled
-    (``modes_at``)."""
+    its per-tet ``stiffness_scale`` (E,) times that) and density [kg/m^3]:
+    ``unit_stiffness_modes``, moved there (``modes_at``)."""
     _check_youngs(youngs)                   # before the eigensolve, not after it
-    return unit_stiffness_modes(tet_body, poisson, density, count, pinned, stiffness_scale,
-                                progress).scaled(youngs)
+    _check_density(density)
+    return modes_at(unit_stiffness_modes(tet_body, poisson, count, pinned, stiffness_scale,
+                                         progress), youngs, density)
 
 
-def modes_at(unit_modes, youngs):
-    """``unit_stiffness_modes``' result at Young's modulus ``youngs`` [Pa]. ValueError for a
-    Young's modulus that is not a positive number."""
+def modes_at(unit_modes, youngs, density):
+    """``unit_stiffness_modes``' result at Young's modulus ``youngs`` [Pa] and density
+    [kg/m^3] (``LinearModes.for_material``). ValueError for either not a positive number."""
     _check_youngs(youngs)
-    return unit_modes.scaled(youngs)
+    _check_density(density)
+    return unit_modes.for_material(youngs, density)
 
 
 def _check_youngs(youngs):
     if not np.isfinite(youngs) or not youngs > 0.0:
         raise ValueError(f"Young's modulus must be a positive number of pascals, got {youngs!r}")
+
+
+def _check_density(density):
+    if not np.isfinite(density) or not density > 0.0:
+        raise ValueError(f"Density must be a positive number of kg/m³, got {density!r}")
 
 
 def cubature_size(settings, num_nodes, num_tets, num_modes):
@@ -152,21 +161,28 @@ def cubature_size(settings, num_nodes, num_tets, num_modes):
     return max(settings.cubature_tets, reduced.default_cubature_size(automatic, num_tets=num_tets))
 
 
-def reduced_deformer(tet_body, linear_modes, density, settings,
-                     progress=lambda fraction, message: None):
-    """The reduced RS deformer (``reduced.ReducedRS``) of the modes, trained on poses up to 180 deg;
-    progress(fraction in [0, 1], message). The eigenvalues only weigh the training poses'
-    modes relative to each other: Prepare passes ``unit_stiffness_modes``, so the deformer is
-    the same for every Young's modulus."""
+def reduced_deformer(tet_body, unit_modes, settings, progress=lambda fraction, message: None):
+    """The reduced RS deformer (``reduced.ReducedRS``) of ``unit_stiffness_modes``' modes,
+    trained on poses up to 180 deg; progress(fraction in [0, 1], message). The training is
+    the same for any Young's modulus and density (its poses are sized in radians and strain,
+    the eigenvalues only weigh the modes relative to each other, and B is orthonormal in the
+    mass of 1 kg/m^3): ``deformer_at`` moves it to the body's density."""
     X, T = tet_body.nodes, tet_body.tets
-    pinned = linear_modes.pinned_nodes
+    pinned = unit_modes.pinned_nodes
     recon = rs.PoissonReconstruction(X, T, pinned_nodes=pinned if len(pinned) else None)
     deformer, _ = reduced.prepare_reduced_rs(
-        X, T, tet_body.lumped_masses(density), linear_modes.vectors, linear_modes.eigenvalues,
+        X, T, tet_body.lumped_masses(1.0), unit_modes.vectors, unit_modes.eigenvalues,
         recon, max_size=settings.basis_size or None,
-        max_tets=cubature_size(settings, len(X), len(T), linear_modes.vectors.shape[1]),
+        max_tets=cubature_size(settings, len(X), len(T), unit_modes.vectors.shape[1]),
         tol=settings.cubature_tolerance, num_poses=settings.training_poses, progress=progress)
     return deformer
+
+
+def deformer_at(unit_deformer, density):
+    """``reduced_deformer``'s deformer for the body's modes at density [kg/m^3] (``modes_at``:
+    the unit modes times 1 / sqrt(rho)): ``ReducedRS.for_mode_scale``."""
+    _check_density(density)
+    return unit_deformer.for_mode_scale(1.0 / np.sqrt(float(density)))
 
 
 def energy_potential(body, kind, youngs, poisson, fung_stiffening=10.0,
@@ -175,7 +191,8 @@ def energy_potential(body, kind, youngs, poisson, fung_stiffening=10.0,
     prepared body at Young's modulus ``youngs`` [Pa] (``body.material``), trained as
     ``ENERGY_TRAINING`` says on the same material at 1 Pa: both energies are proportional to
     Young's modulus, so one training serves every modulus (``energy_at`` moves it), bit for bit
-    whatever the modulus it was first asked for."""
+    whatever the modulus it was first asked for. It is trained in the body's modal coordinates,
+    which depend on its density (``modes_at``): it serves that density only."""
     unit = body.material(kind, 1.0, poisson, fung_stiffening=fung_stiffening)
     potential, _ = materials.prepare_potential(
         unit, body.modal_rs, body.volumes, eigenvalues=body.linear_modes.eigenvalues,
@@ -200,8 +217,9 @@ def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinne
     uniform material, or (vertex weights (n,), ratio) of a stiffness group (``stiffness_scale``)."""
     tet_body = embedded(X, T, base_vertices)
     scale = None if stiffness is None else stiffness_scale(tet_body, *stiffness)
-    unit = unit_stiffness_modes(tet_body, poisson, density, num_modes, pinned, scale)
-    deformer = reduced_deformer(tet_body, unit, density, settings or ReducedSettings())
-    linear = modes_at(unit, youngs)
+    unit = unit_stiffness_modes(tet_body, poisson, num_modes, pinned, scale)
+    deformer = deformer_at(reduced_deformer(tet_body, unit, settings or ReducedSettings()),
+                           density)
+    linear = modes_at(unit, youngs, density)
     return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding,
                         stiffness_scale=scale)

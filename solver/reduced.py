@@ -629,6 +629,20 @@ class ReducedRS:
                          self.modal_rs_cubature, self.linear_map, self._projection,
                          self._modal_rs, dtype)
 
+    def for_mode_scale(self, factor):
+        """This deformer for the modes W times ``factor`` > 0 (the modes of a uniform density
+        rho are those at 1 kg/m^3 times 1 / sqrt(rho), ``modes.LinearModes.for_material``).
+        The same displacement W z' factor = W z is the pose z = factor z', so q'(z') =
+        q(factor z'): the cubature tets' RS coordinates per unit z and A are scaled; B, the
+        cubature and the projections are the same arrays. Evaluation-only (as ``from_arrays``:
+        a scaled copy of the full mesh's modal RS would cost as much as the body's own)."""
+        factor = float(factor)
+        if factor == 1.0:
+            return self
+        return ReducedRS(self.basis, self.cubature_tets, self.cubature_weights, self.projections,
+                         self.modal_rs_cubature * factor, self.linear_map * factor,
+                         dtype=self.dtype)
+
     def attach_full(self, X, T, modal_rs, recon):
         """Give a loaded deformer the full-mesh data ``exact_q`` needs (requires ``basis``)."""
         self._projection = ReducedProjection(X, T, self.basis, recon)

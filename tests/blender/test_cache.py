@@ -89,7 +89,7 @@ def test_stale_cache_is_rebuilt_per_stage(ext):
     obj = prepare_bar(ext)
     stats = ext.bridge.stage_cache.stats
     assert (stats["tetrahedralize"], stats["modes"]) == (1, 1)
-    obj.rs_elastic.density *= 2.0                       # material: only the modes are stale
+    obj.rs_elastic.poisson_ratio = 0.3                  # material: only the modes are stale
     ext.bridge.stage_cache._MEMORY.clear()
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert (stats["tetrahedralize"], stats["modes"]) == (1, 2)
@@ -134,6 +134,46 @@ def test_a_change_of_youngs_modulus_reuses_the_modes_and_the_reduced_stage(ext):
                                before.linear_modes.eigenvalues, rtol=1e-12)
 
 
+def test_a_change_of_density_reuses_the_modes_and_the_reduced_stage(ext):
+    """The modes and the deformer are cached at 1 kg/m³: a new density moves them (eigenvalues
+    over rho, vectors over sqrt(rho)) and computes nothing (read from their files here, as in a
+    new session). The modes equal an independent modal analysis at the new density, and the
+    moved deformer puts the same displacement at the same pose (z over sqrt(rho) is one pose)."""
+    obj = prepare_bar(ext)
+    stats, settings = ext.bridge.stage_cache.stats, obj.rs_elastic
+    before = ext.bridge.prepared.for_object(obj)
+    keys, density = (settings.prepared_key, settings.reduced_key), settings.density
+    settings.density = 0.25 * density
+    assert ext.bridge.prepared.for_object(obj) is None          # stale until Prepare
+    ext.bridge.stage_cache._MEMORY.clear()
+    files = sorted(os.listdir(ext.bridge.stage_cache.cache_dirs()[0]))
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["tetrahedralize"], stats["modes"], stats["reduced"]) == (1, 1, 1)
+    assert sorted(os.listdir(ext.bridge.stage_cache.cache_dirs()[0])) == files
+    assert (settings.prepared_key, settings.reduced_key) == keys
+    after = ext.bridge.prepared.for_object(obj)
+    np.testing.assert_allclose(after.linear_modes.eigenvalues,
+                               4.0 * before.linear_modes.eigenvalues, rtol=1e-12)
+    np.testing.assert_allclose(settings.frequencies, after.linear_modes.frequencies_hz, rtol=1e-6)
+    X, T = after.tet_body.nodes, after.tet_body.tets
+    K = ext.solver.fem.stiffness_matrix(X, T, settings.youngs_modulus, settings.poisson_ratio)
+    reference = ext.solver.modes.linear_modes(
+        K, after.tet_body.lumped_masses(settings.density), settings.num_modes,
+        after.linear_modes.pinned_nodes, rest_positions=X)
+    np.testing.assert_allclose(after.linear_modes.eigenvalues, reference.eigenvalues, rtol=1e-9)
+    np.testing.assert_allclose(after.linear_modes.vectors, reference.vectors,
+                               atol=1e-7 * np.abs(reference.vectors).max())
+    z = 2.0 / np.sqrt(before.linear_modes.eigenvalues)          # large: the RS part matters
+    moved, kept = after.deformer.q(0.5 * z), before.deformer.q(z)  # sqrt(1/4): one pose
+    assert np.abs(kept[settings.num_modes:]).max() > 1e-3 * np.abs(kept).max()
+    np.testing.assert_allclose(moved, kept, rtol=1e-10, atol=1e-12 * np.abs(kept).max())
+    settings.density = density                                    # back: nothing computed either
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["modes"], stats["reduced"]) == (1, 1)
+    np.testing.assert_allclose(ext.bridge.prepared.for_object(obj).linear_modes.eigenvalues,
+                               before.linear_modes.eigenvalues, rtol=1e-12)
+
+
 def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
     obj = prepare_bar(ext)
     before = np.array(obj.rs_elastic.frequencies)
@@ -162,7 +202,8 @@ def test_files_of_old_keys_are_pruned_once_a_new_preparation_is_applied(ext):
     obj = prepare_bar(ext)
     folder = ext.bridge.stage_cache.cache_dirs()[0]
     old = set(os.listdir(folder))
-    obj.rs_elastic.density *= 3                       # new modes (Young's modulus would not do)
+    obj.rs_elastic.poisson_ratio = 0.3                # new modes (Young's modulus or density
+                                                      # would not do)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     new = set(os.listdir(folder))
     assert len(new) == 3 and len(old & new) == 1      # the tets are shared; old modes, reduced gone
@@ -345,7 +386,7 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     # Preparing the same body again keeps them; a new preparation drops them.
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["energy"] == 3 and len(energy_files(folder)) == 3
-    obj.rs_elastic.density *= 2
+    obj.rs_elastic.poisson_ratio = 0.3
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert stats["energy"] == 4 and len(energy_files(folder)) == 1
 
@@ -381,6 +422,30 @@ def test_a_change_of_youngs_modulus_reuses_the_energy_cubature(ext, tmp_path):
         np.testing.assert_allclose(potential.energy(z), exact.energy(z), rtol=1e-2)
         np.testing.assert_allclose(potential.energy(z), factor * trained.energy(z), rtol=1e-6)
     assert stats["energy_cache_hits"] == 1                        # the new session read it
+
+
+def test_a_change_of_density_trains_the_energy_cubature_again(ext):
+    """The energy cubature lives in the body's modal coordinates, which a density rescales:
+    a Fung body given another density trains a new one (its key holds the density), and its
+    energy is the exact all-tet energy of the material within the fit."""
+    obj = make_bar()
+    settings = obj.rs_elastic
+    settings.edge_length, settings.num_modes, settings.material_model = 0.08, 5, 'FUNG'
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    stats, folder = ext.bridge.stage_cache.stats, ext.bridge.stage_cache.cache_dirs()[0]
+    simulate_frames(ext, obj)
+    assert stats["energy"] == 1 and len(energy_files(folder)) == 1
+    settings.density *= 2.0
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert (stats["modes"], stats["reduced"]) == (1, 1)
+    potential = simulate_frames(ext, obj)
+    assert stats["energy"] == 2 and len(energy_files(folder)) == 2
+    body = ext.bridge.prepared.for_object(obj)
+    exact = ext.solver.materials.ReducedPotential.exact(
+        body.material('FUNG', settings.youngs_modulus, settings.poisson_ratio,
+                      settings.fung_stiffening), body.modal_rs, body.volumes)
+    z = 0.3 / np.sqrt(body.linear_modes.eigenvalues)
+    np.testing.assert_allclose(potential.energy(z), exact.energy(z), rtol=1e-2)
 
 
 def _garbage(path, arrays):

@@ -302,33 +302,54 @@ def test_progress_is_reported_between_solves_and_can_stop_them():
 # --- modes at Young's modulus 1 Pa, scaled (what Prepare caches) ------------------------------
 
 @pytest.mark.parametrize("painted", [False, True], ids=["uniform", "painted"])
-def test_modes_at_a_youngs_modulus_are_the_unit_modes_scaled(painted):
-    """K is linear in Young's modulus: the modes Prepare caches at 1 Pa, scaled, equal an
-    independent modal analysis of the stiffness at E (eigenvalues to eigsh's accuracy, vectors
-    with the same signs), and two moduli share the very same vectors."""
+def test_modes_at_a_material_are_the_unit_modes_moved(painted):
+    """K is linear in Young's modulus and M in a uniform density: the modes Prepare caches at
+    1 Pa and 1 kg/m^3, moved to (E, rho), equal an independent modal analysis of the stiffness
+    at E and the masses at rho (eigenvalues to eigsh's accuracy, vectors with the same signs),
+    and two moduli at one density share the very same vectors."""
     from solver import preparation
     X, T = meshgen.box_tet_mesh((1.0, 0.2, 0.2), (10, 2, 2))
     tet_body = preparation.embedded(X, T, X)
     pinned = np.flatnonzero(X[:, 0] < 1e-9)
     scale = (preparation.stiffness_scale(tet_body, 1.0 - X[:, 0], 0.25) if painted else None)
-    unit = preparation.unit_stiffness_modes(tet_body, NU, RHO, 6, pinned, scale)
-    for youngs in (E, 3.7e8):
-        scaled = preparation.linear_modes(tet_body, youngs, NU, RHO, 6, pinned, scale)
-        np.testing.assert_array_equal(scaled.vectors, unit.vectors)
-        np.testing.assert_array_equal(scaled.eigenvalues, unit.eigenvalues * youngs)
-        K = fem.stiffness_matrix(X, T, youngs if scale is None else youngs * scale, NU)
-        reference = modes.linear_modes(K, fem.lumped_masses(X, T, RHO), 6, pinned,
-                                       rest_positions=X)
-        np.testing.assert_allclose(scaled.eigenvalues, reference.eigenvalues, rtol=1e-9)
-        np.testing.assert_allclose(scaled.vectors, reference.vectors,
-                                   atol=1e-7 * np.abs(reference.vectors).max())
+    unit = preparation.unit_stiffness_modes(tet_body, NU, 6, pinned, scale)
+    for density in (RHO, 7.5):
+        shared = None
+        for youngs in (E, 3.7e8):
+            moved = preparation.linear_modes(tet_body, youngs, NU, density, 6, pinned, scale)
+            np.testing.assert_allclose(moved.vectors, unit.vectors / np.sqrt(density),
+                                       rtol=1e-15, atol=0.0)
+            if shared is not None:
+                np.testing.assert_array_equal(moved.vectors, shared)
+            shared = moved.vectors
+            np.testing.assert_array_equal(moved.eigenvalues,
+                                          unit.eigenvalues * (youngs / density))
+            K = fem.stiffness_matrix(X, T, youngs if scale is None else youngs * scale, NU)
+            reference = modes.linear_modes(K, fem.lumped_masses(X, T, density), 6, pinned,
+                                           rest_positions=X)
+            np.testing.assert_allclose(moved.eigenvalues, reference.eigenvalues, rtol=1e-9)
+            np.testing.assert_allclose(moved.vectors, reference.vectors,
+                                       atol=1e-7 * np.abs(reference.vectors).max())
 
 
 @pytest.mark.parametrize("youngs", [0.0, -1e6, float("nan"), float("inf")])
 def test_a_youngs_modulus_that_is_not_positive_is_refused(youngs):
     from solver import preparation
     X, T = meshgen.box_tet_mesh((1.0, 0.2, 0.2), (4, 1, 1))
-    unit = preparation.unit_stiffness_modes(preparation.embedded(X, T, X), NU, RHO, 3,
+    unit = preparation.unit_stiffness_modes(preparation.embedded(X, T, X), NU, 3,
                                             np.flatnonzero(X[:, 0] < 1e-9))
     with pytest.raises(ValueError, match="Young's modulus"):
-        preparation.modes_at(unit, youngs)
+        preparation.modes_at(unit, youngs, RHO)
+
+
+@pytest.mark.parametrize("density", [0.0, -1000.0, float("nan"), float("inf")])
+def test_a_density_that_is_not_positive_is_refused(density):
+    from solver import preparation
+    X, T = meshgen.box_tet_mesh((1.0, 0.2, 0.2), (4, 1, 1))
+    tet_body = preparation.embedded(X, T, X)
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    unit = preparation.unit_stiffness_modes(tet_body, NU, 3, pinned)
+    with pytest.raises(ValueError, match="Density"):
+        preparation.modes_at(unit, E, density)
+    with pytest.raises(ValueError, match="Density"):
+        preparation.linear_modes(tet_body, E, NU, density, 3, pinned)

@@ -172,9 +172,11 @@ def test_a_pinned_bar_settles_where_the_full_static_solution_puts_its_tip(bar):
     per cent of its length, which the first modes carry."""
     body, rest = bar
     youngs = 2e7
-    linear = preparation.linear_modes(body.tet_body, youngs, 0.45, 1000.0, 6, body.pinned_nodes)
-    soft = body_module.PreparedBody(body.tet_body, linear, preparation.reduced_deformer(
-        body.tet_body, linear, 1000.0, preparation.ReducedSettings()))
+    unit = preparation.unit_stiffness_modes(body.tet_body, 0.45, 6, body.pinned_nodes)
+    unit_deformer = preparation.reduced_deformer(body.tet_body, unit,
+                                                 preparation.ReducedSettings())
+    soft = body_module.PreparedBody(body.tet_body, preparation.modes_at(unit, youngs, 1000.0),
+                                    preparation.deformer_at(unit_deformer, 1000.0))
     settings = problems.SimulationSettings(h=1.0 / 24.0, density=1000.0, gravity=(0.0, 0.0, -9.81))
     sim = problems.simulation(soft, problems.linear_potential(soft, youngs, 0.45), settings)
     sim.static_equilibrium()
@@ -191,3 +193,41 @@ def test_a_pinned_bar_settles_where_the_full_static_solution_puts_its_tip(bar):
     print(f"tip sag: reduced {reduced_:.5f} m, full FEM {full:.5f} m")
     assert full < -0.02                                   # a real sag, a percent of the length
     assert abs(reduced_ / full - 1.0) < 0.03
+
+
+def test_a_density_moves_the_unit_stages_without_changing_the_motion():
+    """Prepare caches the modes and the deformer at 1 Pa and 1 kg/m^3 and moves them to the
+    body's material (``preparation.modes_at``, ``deformer_at``). Two oracles: (1) rho M u'' +
+    E K1 u = rho M g is E/rho K1 u + M u'' = M g, so a body of (E, rho) falls exactly as one of
+    (E / rho, 1 kg/m^3), which uses the unit deformer untouched (a wrong scale of the moved one
+    shows here); (2) the moved deformer gives the displacements of one trained directly on the
+    modes and masses at rho (the training is sized in radians and strain, so it is the same
+    up to its cubature accuracy)."""
+    X, T = meshgen.box_tet_mesh(SIZE, (8, 2, 2))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    tet_body = preparation.embedded(X, T, X)
+    unit = preparation.unit_stiffness_modes(tet_body, 0.45, 6, pinned)
+    unit_deformer = preparation.reduced_deformer(
+        tet_body, unit, preparation.ReducedSettings(basis_size=40, cubature_tets=60))
+    youngs, density = 2e6, 1000.0
+    paths = []
+    for e, rho in ((youngs, density), (youngs / density, 1.0)):
+        body = body_module.PreparedBody(tet_body, preparation.modes_at(unit, e, rho),
+                                        preparation.deformer_at(unit_deformer, rho))
+        settings = problems.SimulationSettings(h=1.0 / 24.0, density=rho,
+                                               gravity=(0.0, 0.0, -9.81))
+        sim = problems.simulation(body, problems.linear_potential(body, e, 0.45), settings)
+        paths.append(sim.run(24).world_positions(body.nodes, body.deformer.basis))
+    motion = np.abs(paths[1] - paths[1][0]).max()
+    print(f"tip motion {motion:.3f} m, largest difference {np.abs(paths[0] - paths[1]).max():.2e} m")
+    assert motion > 0.5                                   # the bar swings down a long way
+    np.testing.assert_allclose(paths[0], paths[1], rtol=0.0, atol=1e-5 * motion)  # float32 steps
+    heavy = preparation.modes_at(unit, youngs, density)
+    direct, _ = reduced.prepare_reduced_rs(
+        X, T, tet_body.lumped_masses(density), heavy.vectors, heavy.eigenvalues,
+        rs.PoissonReconstruction(X, T, pinned_nodes=pinned), max_size=40, max_tets=60)
+    moved = preparation.deformer_at(unit_deformer, density)
+    Z = np.random.default_rng(3).normal(size=(20, 6)) * 3.0 / np.sqrt(heavy.eigenvalues)
+    expected = direct.basis @ direct.q_batch(Z).T
+    np.testing.assert_allclose(moved.basis @ moved.q_batch(Z).T, expected, rtol=0.0,
+                               atol=1e-3 * np.abs(expected).max())
