@@ -16,10 +16,10 @@ key hashes the tet mesh *actually used* (its arrays) with the material but for Y
 and density (Poisson's ratio, a painted one's stiffness group weights and ratio) and pins; the
 reduced key hashes the modes' arrays with the reduced settings; the energy key hashes the tets'
 and the modes' arrays and a painted body's per-tet stiffness (what the cubature is trained on)
-with the material kind, every material parameter it is trained with but Young's modulus
-(Poisson's ratio, the density, whose modal coordinates it is trained in, and the stiffening for
-Fung only) and the training settings: it is trained at
-1 Pa and serves every modulus (`preparation.energy_potential`). So stages of
+with the material kind, every material parameter it is trained with but Young's modulus and
+density (Poisson's ratio, and the stiffening for Fung only) and the training settings: it is
+trained at 1 Pa in the coordinates of the modes at 1 kg/m³ and serves every modulus and density
+(`preparation.unit_energy_potential`). So stages of
 different runs can never mix. Each stage is looked up in memory, then in its cache file
 (`stage_cache`), and computed only if neither has it.
 
@@ -45,7 +45,7 @@ from .scene import InputError
 # How the energy cubature is trained; part of its key.
 ENERGY_TRAINING = preparation.ENERGY_TRAINING
 # Version of what the energy key leaves out; bump it when that changes.
-ENERGY_RULES = "energy-3: trained at Young's modulus 1 Pa, in the modes at the body's density"
+ENERGY_RULES = "energy-3: trained at Young's modulus 1 Pa, in the modes at 1 kg/m^3"
 
 # Version of the automatic basis and cubature sizing and training range (solver.reduced): a
 # reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
@@ -133,18 +133,17 @@ class EnergyInputs:
     kind: str                  # "STVK" or "FUNG"
     youngs: float              # [Pa] (at weight 1 of a stiffness group)
     poisson: float
-    density: float             # [kg/m^3]: the body's modal coordinates depend on it
     fung_stiffening: float     # dimensionless; only Fung reads it
     material: object = None    # the prepared body's (``for_body``): a cubature is trained for it
 
     @functools.cached_property
     def parameters(self):
-        """The material parameters the cubature depends on (not Young's modulus: it is trained
-        at 1 Pa; Fung's stiffening for Fung only: StVK's cubature does not read it, so changing
-        it reuses StVK's file; the density, since it is trained in the body's modal
-        coordinates, ``preparation.energy_potential``)."""
+        """The material parameters the cubature depends on (not Young's modulus nor density: it
+        is trained at 1 Pa in the modes at 1 kg/m³, ``preparation.unit_energy_potential``;
+        Fung's stiffening for Fung only: StVK's cubature does not read it, so changing it
+        reuses StVK's file)."""
         stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
-        return (ENERGY_RULES, self.poisson, self.density) + stiffening
+        return (ENERGY_RULES, self.poisson) + stiffening
 
     def for_body(self, body):
         """These inputs with the material of the PreparedBody (its painted stiffness, if any)."""
@@ -167,8 +166,7 @@ def energy_inputs(obj):
     if settings.material_model == 'LINEAR':
         return None
     return EnergyInputs(obj.name, stage_cache.cache_dirs(), settings.material_model,
-                        settings.youngs_modulus, settings.poisson_ratio, settings.density,
-                        settings.fung_stiffening)
+                        settings.youngs_modulus, settings.poisson_ratio, settings.fung_stiffening)
 
 
 def rest_surface(obj, depsgraph):
@@ -444,7 +442,8 @@ def cached_energy(energy, body):
 
 
 def _at_modulus(potential, energy, body):
-    """The cached cubature `potential` with the body's material at the inputs' Young's modulus."""
+    """The cached cubature `potential` (at 1 Pa and 1 kg/m³) with the body's material at the
+    inputs' Young's modulus, in the body's modal coordinates."""
     return preparation.energy_at(potential, body, energy.kind, energy.youngs, energy.poisson,
                                  energy.fung_stiffening)
 
@@ -461,8 +460,8 @@ def energy_stage(energy, body, job, start=0.0, end=1.0, cached_only=False):
         _refuse_unless_computing(energy.object_name, cached_only, f"its {title} is")
         job.step(start, f"{title}: RS coordinates of the modes")
         stage_cache.stats["energy"] += 1
-        return preparation.energy_potential(
-            body, energy.kind, energy.youngs, energy.poisson, energy.fung_stiffening,
+        return preparation.unit_energy_potential(
+            body, energy.kind, energy.poisson, energy.fung_stiffening,
             progress=lambda f, message: job.step(start + (end - start) * f, f"{title}: {message}"))
 
     potential = stage_cache.get_or_compute(energy, "energy", energy.key(parent), parent, compute,
@@ -489,7 +488,7 @@ def prepare(inputs, job):
         raise InputError(f"'{inputs.object_name}': {exc}") from None
     body = PreparedBody(tet_body, linear_modes, deformer, keys, (tets_digest, modes_digest),
                         pinned_embedding=None if pins is None else pins.embedding,
-                        stiffness_scale=scale)
+                        stiffness_scale=scale, unit_modes=unit_modes, density=inputs.density)
     if inputs.energy is not None:
         body.energy = energy_stage(inputs.energy, body, job, start=0.9, end=0.99,
                                    cached_only=inputs.cached_only)

@@ -75,6 +75,25 @@ class PreparedBody:
     # group, ``preparation.stiffness_scale``); None: a uniform material. The modes were computed
     # with it, and every material made of the body (``material``) carries it.
     stiffness_scale: np.ndarray = None
+    # The modes at 1 Pa and 1 kg/m^3 that linear_modes were moved from (``preparation.modes_at``)
+    # and the uniform density [kg/m^3] they were moved to: what a cache trains in, so that no
+    # change of Young's modulus or density trains it again. None: linear_modes themselves (at
+    # ``density`` 1, the scale of a body made without them).
+    unit_modes: modes.LinearModes = None
+    density: float = 1.0
+
+    @property
+    def mode_scale(self):
+        """The body's modes over ``unit_modes`` (1 / sqrt(density)): the scale that moves a
+        quadrature trained in unit coordinates to the body's (``for_mode_scale``)."""
+        return 1.0 if self.unit_modes is None else 1.0 / np.sqrt(float(self.density))
+
+    def unit_modal_rs(self):
+        """(E, 9, r) linear RS of ``unit_modes`` (``modal_rs`` itself when they are the body's
+        modes or at 1 kg/m^3); computed on each call, not kept (it is as large as modal_rs)."""
+        if self.unit_modes is None or self.mode_scale == 1.0:
+            return self.modal_rs
+        return rs.linear_rs(rs.rs_operator(self.nodes, self.tets), self.unit_modes.vectors)
 
     # --- the material, as every consumer makes it ---------------------------------------------
     def tet_youngs(self, youngs):

@@ -332,6 +332,15 @@ class ReducedPotential(PotentialAccessors):
         bit for bit like the saved one (the same arrays, the same arithmetic)."""
         return cls(material, arrays["strain_modes"], arrays["weights"], tets=arrays.get("tets"))
 
+    def for_mode_scale(self, factor):
+        """This quadrature for the modes times ``factor`` > 0 (``reduced.ReducedRS.
+        for_mode_scale``): the strain per unit s scales, the tets and weights are the same."""
+        factor = float(factor)
+        if factor == 1.0:
+            return self
+        return ReducedPotential(self.material, self.strain_modes * factor, self.weights,
+                                tets=self.tets)
+
     def with_material(self, material):
         """The potential of ``material`` over this quadrature (the same arrays). A cubature
         trained for a material serves any positive multiple of it: StVK's and Fung's energies

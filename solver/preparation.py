@@ -11,7 +11,9 @@
    both).
 4. ``reduced_deformer``: the reduced RS basis and its cubature (``reduced``) of those modes;
    ``deformer_at`` moves it to the body's density.
-5. ``energy_potential``: the energy cubature of a StVK or Fung material (``materials``).
+5. ``unit_energy_potential``: the energy cubature of a StVK or Fung material (``materials``)
+   at 1 Pa in the coordinates of the modes at 1 kg/m^3; ``energy_at`` moves it to the body's
+   Young's modulus and density.
 
 Each stage is a plain function of the one before, so the Blender layer can cache each result
 under its own content key, and the bench times exactly what Prepare runs.
@@ -185,26 +187,36 @@ def deformer_at(unit_deformer, density):
     return unit_deformer.for_mode_scale(1.0 / np.sqrt(float(density)))
 
 
+def unit_energy_potential(body, kind, poisson, fung_stiffening=10.0,
+                          progress=lambda fraction, message: None):
+    """The energy cubature (``materials.ReducedPotential``) of a StVK or Fung material of the
+    prepared body, trained as ``ENERGY_TRAINING`` says at 1 Pa in the coordinates of
+    ``body.unit_modes`` (1 kg/m^3; the body's own modes if it has none). Both energies are
+    proportional to Young's modulus, and a density only rescales the modal coordinates, so one
+    training serves every modulus and density (``energy_at`` moves it), bit for bit whatever
+    the ones it was first asked for."""
+    unit = body.material(kind, 1.0, poisson, fung_stiffening=fung_stiffening)
+    modes_ = body.linear_modes if body.unit_modes is None else body.unit_modes
+    potential, _ = materials.prepare_potential(
+        unit, body.unit_modal_rs(), body.volumes, eigenvalues=modes_.eigenvalues,
+        **ENERGY_TRAINING, progress=progress)
+    return potential
+
+
 def energy_potential(body, kind, youngs, poisson, fung_stiffening=10.0,
                      progress=lambda fraction, message: None):
-    """The energy cubature (``materials.ReducedPotential``) of a StVK or Fung material of the
-    prepared body at Young's modulus ``youngs`` [Pa] (``body.material``), trained as
-    ``ENERGY_TRAINING`` says on the same material at 1 Pa: both energies are proportional to
-    Young's modulus, so one training serves every modulus (``energy_at`` moves it), bit for bit
-    whatever the modulus it was first asked for. It is trained in the body's modal coordinates,
-    which depend on its density (``modes_at``): it serves that density only."""
-    unit = body.material(kind, 1.0, poisson, fung_stiffening=fung_stiffening)
-    potential, _ = materials.prepare_potential(
-        unit, body.modal_rs, body.volumes, eigenvalues=body.linear_modes.eigenvalues,
-        **ENERGY_TRAINING, progress=progress)
-    return energy_at(potential, body, kind, youngs, poisson, fung_stiffening)
+    """``unit_energy_potential`` at the body's Young's modulus ``youngs`` [Pa] and density
+    (``energy_at``)."""
+    return energy_at(unit_energy_potential(body, kind, poisson, fung_stiffening, progress),
+                     body, kind, youngs, poisson, fung_stiffening)
 
 
-def energy_at(potential, body, kind, youngs, poisson, fung_stiffening=10.0):
-    """An energy cubature of the body moved to Young's modulus ``youngs`` [Pa] (the same
-    quadrature, the body's material at that modulus)."""
+def energy_at(unit_potential, body, kind, youngs, poisson, fung_stiffening=10.0):
+    """``unit_energy_potential``'s cubature moved to Young's modulus ``youngs`` [Pa] (the body's
+    material at that modulus) and the body's modal coordinates (``body.mode_scale``); the
+    same tets and weights."""
     _check_youngs(youngs)
-    return potential.with_material(
+    return unit_potential.for_mode_scale(body.mode_scale).with_material(
         body.material(kind, youngs, poisson, fung_stiffening=fung_stiffening))
 
 
@@ -222,4 +234,4 @@ def prepare_body(X, T, base_vertices, youngs, poisson, density, num_modes, pinne
                            density)
     linear = modes_at(unit, youngs, density)
     return PreparedBody(tet_body, linear, deformer, pinned_embedding=pinned_embedding,
-                        stiffness_scale=scale)
+                        stiffness_scale=scale, unit_modes=unit, density=float(density))

@@ -10,7 +10,8 @@ import pytest
 import scipy.sparse.linalg as spla
 
 from solver import body as body_module
-from solver import embed, fem, meshgen, modes, poses, preparation, problems, reduced, rs, spacetime
+from solver import (embed, fem, materials, meshgen, modes, poses, preparation, problems, reduced,
+                    rs, spacetime)
 
 SIZE = (4.0, 1.0, 1.0)
 
@@ -231,3 +232,29 @@ def test_a_density_moves_the_unit_stages_without_changing_the_motion():
     expected = direct.basis @ direct.q_batch(Z).T
     np.testing.assert_allclose(moved.basis @ moved.q_batch(Z).T, expected, rtol=0.0,
                                atol=1e-3 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("kind", ["STVK", "FUNG"])
+def test_one_energy_cubature_serves_every_density(kind):
+    """The energy cubature is trained at 1 Pa in the coordinates of the modes at 1 kg/m^3
+    (``preparation.unit_energy_potential``): two bodies of other densities train the same tets
+    and weights bit for bit, and moved to each (``energy_at``) it gives the energy of one
+    displacement (z over sqrt(rho) is one pose) and each body's exact all-tet energy within its
+    fit."""
+    X, T = meshgen.box_tet_mesh(SIZE, (8, 2, 2))
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    settings = preparation.ReducedSettings(basis_size=30, cubature_tets=40)
+    light, heavy = (preparation.prepare_body(X, T, X, 1e6, 0.45, rho, 5, pinned,
+                                             settings=settings) for rho in (250.0, 1000.0))
+    trained = [preparation.unit_energy_potential(body, kind, 0.45) for body in (light, heavy)]
+    np.testing.assert_array_equal(trained[0].tets, trained[1].tets)
+    np.testing.assert_array_equal(trained[0].weights, trained[1].weights)
+    z = np.random.default_rng(4).normal(size=(4, 5)) * 0.3 / np.sqrt(light.linear_modes.eigenvalues)
+    at_light, at_heavy = (preparation.energy_at(trained[0], body, kind, 1e6, 0.45)
+                          for body in (light, heavy))
+    for pose in z:
+        np.testing.assert_allclose(at_heavy.energy(2.0 * pose), at_light.energy(pose), rtol=1e-10)
+        for body, potential, pose_ in ((light, at_light, pose), (heavy, at_heavy, 2.0 * pose)):
+            exact = materials.ReducedPotential.exact(body.material(kind, 1e6, 0.45),
+                                                     body.modal_rs, body.volumes)
+            assert abs(potential.energy(pose_) / exact.energy(pose_) - 1.0) < 1e-3
