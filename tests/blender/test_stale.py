@@ -278,7 +278,7 @@ def test_undo_of_a_re_prepare_quietly_recomputes_the_pruned_files(ext, bar, capf
     frequencies = np.array(bar.rs_elastic.frequencies)
     old_files = [_stage_file(ext, bar, stage) for stage in ("modes", "reduced")]
     bpy.ops.ed.undo_push(message="before")
-    bar.rs_elastic.density *= 4.0       # new modes (Young's modulus alone reuses them)
+    bar.rs_elastic.poisson_ratio = 0.3  # new modes (Young's modulus or density reuse them)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     bpy.ops.ed.undo_push(message="Prepare Body")
     assert not any(path.exists() for path in old_files)            # pruned
