@@ -181,12 +181,40 @@ def _gather_rigged(obj, blender_scene, body, frames, gravity):
                          settle=obj.rs_elastic.start_settled)
 
 
+# A frame is slow when it took at least this many internal steps at the shortest retake length
+# (dt / 2^MAX_STEP_SPLITS): as much work as 2^MAX_STEP_SPLITS substeps, for one substep's time.
+SLOW_FRAME_STEPS = 2 ** dynamics.MAX_STEP_SPLITS
+
+
+def slow_frames(simulation, first_frame):
+    """Scene frames (ascending) the simulation took slowly (``SLOW_FRAME_STEPS``); first_frame:
+    the frame it starts at (its step k ends on first_frame + k, as ``InversionError`` counts)."""
+    return [first_frame + frame for frame, count in sorted(simulation.shortest_steps.items())
+            if count >= SLOW_FRAME_STEPS]
+
+
+def slow_warning(object_name, frames, total):
+    """One line on frames whose steps were cut to the shortest length to keep every tet from
+    inverting, and what usually avoids that; None when there were none."""
+    if not frames:
+        return None
+    cut = 2 ** dynamics.MAX_STEP_SPLITS
+    return (f"'{object_name}': {len(frames)} of {total} frames (from frame {frames[0]}) were slow: "
+            f"their steps were cut to 1/{cut} to keep every tet from inverting. A larger Basis "
+            "Size (0 is automatic), more Substeps or a stiffer material usually avoid it")
+
+
 def run(job_inputs, job):
     """Worker thread: simulate every frame and return the base-vertex poses (F, n, 3)."""
     steps = len(job_inputs.frames) - 1
+    simulation, first = job_inputs.simulation, job_inputs.frames[0]
 
     def progress(step, total):
-        job.step(step / total, f"frame {job_inputs.frames[0] + step} of {job_inputs.frames[-1]}")
+        message = f"frame {first + step} of {job_inputs.frames[-1]}"
+        slow = slow_frames(simulation, first)
+        if slow:                         # say why it is slow while it still runs
+            message += f" (slow since frame {slow[0]}: steps cut to keep tets from inverting)"
+        job.step(step / total, message)
 
     if job_inputs.settle:
         job.step(0.0, "settling into static equilibrium")
@@ -203,6 +231,9 @@ def run(job_inputs, job):
         raise InputError(f"The simulation of '{job_inputs.object_name}' stopped at frame "
                          f"{job_inputs.frames[0] + exc.frame}: {exc.detail}. Nothing was "
                          "baked") from None
+    warning = slow_warning(job_inputs.object_name, slow_frames(simulation, first), steps)
+    if warning is not None:
+        job.warn(warning)
     if job_inputs.free:   # the floating frame's motion is part of the pose in object space
         poses = trajectory.world_positions(job_inputs.rest, job_inputs.rows)
     else:

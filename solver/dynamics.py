@@ -216,7 +216,8 @@ class Simulation:
     velocity at t0 comes from frame_motion around t0, so a frame already moving at t0 carries
     the body along. ``state`` (``State``) is all a step changes; time, dt, coords (s), q,
     rotation and translation read it. ``iterations``: Newton iterations of the last frame
-    (summed over its substeps).
+    (summed over its substeps); ``shortest_steps``: frame -> internal steps retaken down to
+    the shortest length in it (slow frames; empty while none was).
     """
 
     def __init__(self, deformer, rest_positions, masses, potential, h, gravity=(0.0, 0.0, 0.0),
@@ -254,6 +255,11 @@ class Simulation:
         self._volumes = (None if tets is None else
                          inversion.DeformedVolumes(rest_positions, tets, deformer.basis,
                                                    dtype=np.float32))
+        # frame (1-based, as ``InversionError`` counts) -> internal steps it took at the
+        # shortest retake length, dt / 2^MAX_STEP_SPLITS: a body that needs them on frame after
+        # frame bakes slowly (every such step is 2^MAX_STEP_SPLITS times the work), which the
+        # caller can say why
+        self.shortest_steps = {}
         self.contact = None
         if contact is not None:    # the contact's friction and damping act on our end velocity
             contact.scheme = self.scheme
@@ -355,6 +361,8 @@ class Simulation:
             return self._take_step()
         snapshot = self.state.copy()
         self._set_step(dt)
+        if splits >= MAX_STEP_SPLITS:
+            self.shortest_steps[frame] = self.shortest_steps.get(frame, 0) + 1
         blocked = None
         try:
             iterations = self._take_step(restart=splits >= MAX_STEP_SPLITS)

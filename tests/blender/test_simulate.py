@@ -180,3 +180,41 @@ def test_start_settled_begins_at_rest_in_the_sag_it_keeps(ext):
     assert still < 1e-6
     assert bounce > 1e-3
     assert np.abs(runs[False][0] - rest).max() < 1e-9        # the default starts undeformed
+
+
+def test_frames_whose_steps_were_cut_to_the_shortest_are_reported_as_slow(ext, capfd,
+                                                                          monkeypatch):
+    """A body whose steps must be retaken down to dt / 2^MAX_STEP_SPLITS to keep its tets from
+    inverting (a basis far too coarse for a mesh's smallest tets does it frame after frame) bakes
+    slowly: one warning names how many frames and the first, and what usually avoids it; the
+    bake still lands. Forced here (every check of a longer step fails; the shortest are checked
+    for real), and the same body unforced reports nothing."""
+    dynamics = ext.solver.dynamics
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 4
+    obj = prepared(make_bar())
+    obj.rs_elastic.substeps = 1
+
+    def slow_warnings():
+        return [line for line in capfd.readouterr().out.splitlines()
+                if line.startswith("Warning: ") and "were slow" in line]
+
+    capfd.readouterr()
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    assert slow_warnings() == []
+    real_check = dynamics.Simulation._inverted_tets
+
+    def failing_above_the_shortest(sim):
+        count, smallest, finite, ratios = real_check(sim)
+        if sim.state.dt > 1.5 * sim.h / sim.substeps / 2 ** dynamics.MAX_STEP_SPLITS:
+            return 1, -1.0, True, ratios
+        return count, smallest, finite, ratios
+
+    monkeypatch.setattr(dynamics.Simulation, "_inverted_tets", failing_above_the_shortest)
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    cut = 2 ** dynamics.MAX_STEP_SPLITS
+    assert slow_warnings() == [
+        f"Warning: 'Bar': 3 of 3 frames (from frame 2) were slow: their steps were cut to "
+        f"1/{cut} to keep every tet from inverting. A larger Basis Size (0 is automatic), more "
+        "Substeps or a stiffer material usually avoid it"]
+    assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3, 4]

@@ -303,6 +303,21 @@ def test_only_the_shortest_retake_restarts_from_the_steps_start():
     assert sim.time == pytest.approx(h)
 
 
+def test_each_frame_counts_its_steps_at_the_shortest_retake_length():
+    """``shortest_steps`` (what a bake reports as slow frames) counts, per frame, the internal
+    steps taken at dt / 2^MAX_STEP_SPLITS: none while the checks pass, the two shortest halves
+    on the frame whose checks are forced to fail down to there, and nothing more after it."""
+    column = soft_column(2e5)
+    sim = column_simulation(column, column_potential(column, "LINEAR"), substeps=1)
+    sim.step()
+    assert sim.shortest_steps == {}
+    force_failed_checks(sim, dynamics.MAX_STEP_SPLITS)
+    sim.step()
+    assert sim.shortest_steps == {2: 2}
+    sim.step()
+    assert sim.shortest_steps == {2: 2}
+
+
 def test_the_shortest_retake_is_taken_once_more_watching_what_turned():
     """A failing shortest retake is taken once more at its own length, watching the tets
     that turned in it (a tet above WATCH_J at its start had no reconstruction barrier there):
