@@ -64,6 +64,31 @@ def test_live_moves_the_preview_onto_the_new_target_and_leaves_the_bake(ext):
     assert np.linalg.norm(world_tip(obj, tip)[:3] - old[20]) < 1e-3 * size
 
 
+def test_after_a_prepare_of_another_density_live_meets_the_moved_handle(ext):
+    """A density rescales the modal coordinates (the modes at rho are those at 1 kg/m³ over
+    sqrt(rho), moved without computing anything): the next re-solve, warm-started from the
+    solution in the old coordinates, still meets the moved handle."""
+    live = ext.bridge.live
+    obj, empty, tip = prepared_bar_with_tip_handle({})
+    empty.location = lifted(obj, 0.8)
+    empty.keyframe_insert("location", frame=30)
+    bpy.context.view_layer.update()
+    obj.rs_elastic.live = True
+    assert live.flush() == [obj.name]
+    assert live.status(obj).startswith("Live: cold")
+    obj.rs_elastic.density *= 4.0
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert ext.bridge.stage_cache.stats["modes"] == 1             # the modes were moved
+    target = np.array(lifted(obj, -0.6))
+    empty.location = target
+    empty.keyframe_insert("location", frame=30)
+    bpy.context.view_layer.update()
+    assert live.flush() == [obj.name]
+    bpy.context.scene.frame_set(30)
+    assert np.linalg.norm(world_tip(obj, tip)[:3] - target) < 1e-3 * diagonal(vertices(obj))
+    obj.rs_elastic.live = False
+
+
 def test_live_without_a_bake_shows_the_solve_and_off_restores_the_mesh(ext):
     live = ext.bridge.live
     obj, empty, tip = prepared_bar_with_tip_handle({})
