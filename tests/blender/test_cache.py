@@ -363,11 +363,14 @@ def test_simulate_trains_a_cubature_per_material_and_prune_keeps_the_current_one
     assert stats["energy"] == 4 and len(energy_files(folder)) == 1
 
 
-def test_a_change_of_youngs_modulus_reuses_the_energy_cubature(ext, tmp_path):
-    """The energy cubature is trained at 1 Pa: a Fung body given another Young's modulus
-    trains nothing (in this session, nor in a new one reading the files), and simulates with
-    its material at the new modulus: the cubature's energy is the exact all-tet energy of
-    that material within the fit."""
+@pytest.mark.parametrize("setting, factors", [("youngs_modulus", (3.0, 0.5)),
+                                              ("density", (2.0, 4.0))])
+def test_a_change_of_youngs_modulus_or_density_reuses_the_energy_cubature(ext, setting, factors):
+    """The energy cubature is trained at 1 Pa in the modes at 1 kg/m³: a Fung body given another
+    Young's modulus or density trains nothing (in this session, nor in a new one reading the
+    file), and simulates with its material at the new values: the energy of one displacement
+    (z times sqrt(rho' / rho) is one pose) is E' / E times what it was, and the exact all-tet
+    energy of that material within the fit."""
     obj = make_bar()
     settings = obj.rs_elastic
     settings.edge_length, settings.num_modes, settings.material_model = 0.08, 5, 'FUNG'
@@ -375,41 +378,10 @@ def test_a_change_of_youngs_modulus_reuses_the_energy_cubature(ext, tmp_path):
     stats, folder = ext.bridge.stage_cache.stats, ext.bridge.stage_cache.cache_dirs()[0]
     trained = simulate_frames(ext, obj)
     assert stats["energy"] == 1 and len(energy_files(folder)) == 1
-    youngs = settings.youngs_modulus
-    for factor, new_session in ((3.0, False), (0.5, True)):
-        settings.youngs_modulus = factor * youngs
-        if new_session:
-            ext.bridge.stage_cache._MEMORY.clear()
-            ext.bridge.prepared._BODIES.clear()
-        assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-        potential = simulate_frames(ext, obj)
-        assert stats["energy"] == 1 and len(energy_files(folder)) == 1
-        np.testing.assert_array_equal(potential.tets, trained.tets)
-        np.testing.assert_array_equal(potential.weights, trained.weights)
-        body = ext.bridge.prepared.for_object(obj)
-        exact = ext.solver.materials.ReducedPotential.exact(
-            body.material('FUNG', settings.youngs_modulus, settings.poisson_ratio,
-                          settings.fung_stiffening), body.modal_rs, body.volumes)
-        z = 0.3 / np.sqrt(body.linear_modes.eigenvalues)
-        np.testing.assert_allclose(potential.energy(z), exact.energy(z), rtol=1e-2)
-        np.testing.assert_allclose(potential.energy(z), factor * trained.energy(z), rtol=1e-6)
-    assert stats["energy_cache_hits"] == 1                        # the new session read it
-
-
-def test_a_change_of_density_reuses_the_energy_cubature(ext):
-    """The energy cubature is trained at 1 Pa in the modes at 1 kg/m³: a Fung body given another
-    density trains nothing (in this session, nor in a new one reading the file); moved to the
-    body's modal coordinates it gives the energy of the same displacement as before (z times
-    sqrt(2) at twice the density is one pose) and the exact all-tet energy within the fit."""
-    obj = make_bar()
-    settings = obj.rs_elastic
-    settings.edge_length, settings.num_modes, settings.material_model = 0.08, 5, 'FUNG'
-    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
-    stats, folder = ext.bridge.stage_cache.stats, ext.bridge.stage_cache.cache_dirs()[0]
-    trained = simulate_frames(ext, obj)
     z = 0.3 / np.sqrt(ext.bridge.prepared.for_object(obj).linear_modes.eigenvalues)
-    for factor, new_session in ((2.0, False), (4.0, True)):
-        settings.density = factor * 1100.0
+    youngs, density, prepared = settings.youngs_modulus, settings.density, getattr(settings, setting)
+    for factor, new_session in zip(factors, (False, True)):
+        setattr(settings, setting, factor * prepared)
         if new_session:
             ext.bridge.stage_cache._MEMORY.clear()
             ext.bridge.prepared._BODIES.clear()
@@ -419,13 +391,13 @@ def test_a_change_of_density_reuses_the_energy_cubature(ext):
         assert stats["energy"] == 1 and len(energy_files(folder)) == 1
         np.testing.assert_array_equal(potential.tets, trained.tets)
         np.testing.assert_array_equal(potential.weights, trained.weights)
-        np.testing.assert_allclose(potential.energy(np.sqrt(factor) * z), trained.energy(z),
-                                   rtol=1e-10)
+        pose = np.sqrt(settings.density / density) * z
+        np.testing.assert_allclose(potential.energy(pose),
+                                   settings.youngs_modulus / youngs * trained.energy(z), rtol=1e-6)
         body = ext.bridge.prepared.for_object(obj)
         exact = ext.solver.materials.ReducedPotential.exact(
             body.material('FUNG', settings.youngs_modulus, settings.poisson_ratio,
                           settings.fung_stiffening), body.modal_rs, body.volumes)
-        pose = np.sqrt(factor) * z
         np.testing.assert_allclose(potential.energy(pose), exact.energy(pose), rtol=1e-2)
     assert stats["energy_cache_hits"] == 1                        # the new session read it
 
