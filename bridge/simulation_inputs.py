@@ -132,8 +132,9 @@ def gather(obj, blender_scene):
     warnings, free = [], len(body.pinned_nodes) == 0
     scale = np.abs(np.array(obj.matrix_world.to_scale()))      # a mirror is not a scale
     if np.abs(scale - 1.0).max() > 1e-6:
-        warnings.append(f"'{obj.name}' is scaled by {tuple(np.round(scale, 3))}: the simulation "
-                        "treats its object space as metres")
+        shown = ", ".join(f"{value:g}" for value in np.round(scale, 3))
+        warnings.append(f"'{obj.name}' is scaled by ({shown}): the simulation treats its object "
+                        "space as metres")
     h = scene.frame_interval(blender_scene)
     frame_motion, gravity, world_to_sim = body_placement(obj, blender_scene, frames, h,
                                                            gravity, free)

@@ -218,3 +218,19 @@ def test_frames_whose_steps_were_cut_to_the_shortest_are_reported_as_slow(ext, c
         f"1/{cut} to keep every tet from inverting. A larger Basis Size (0 is automatic), more "
         "Substeps or a stiffer material usually avoid it"]
     assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3, 4]
+
+
+def test_a_scaled_body_is_simulated_with_one_readable_warning(ext, capfd):
+    """A scaled (and mirrored) body: one warning giving the scale as plain numbers (a mirror is
+    not a scale), and the bake lands."""
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 3
+    obj = prepared(make_bar())
+    obj.scale = (1.2, -1.0, 1.1)
+    capfd.readouterr()
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    warnings = [line for line in capfd.readouterr().out.splitlines()
+                if line.startswith("Warning: ")]
+    assert warnings == ["Warning: 'Bar' is scaled by (1.2, 1, 1.1): the simulation treats its "
+                        "object space as metres"]
+    assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3]
