@@ -40,6 +40,10 @@ def require(obj):
     since Prepare Body, or that it is not prepared."""
     staleness.require_current(obj)
     body = for_object(obj)
-    if body is None or body.deformer is None:
-        raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")
-    return body
+    if body is not None and body.deformer is not None:
+        return body
+    if obj.rs_elastic.is_prepared:      # prepared, not stale, yet not rebuilt under its keys
+        raise InputError(f"'{obj.name}' must be prepared again: its preparation cannot be rebuilt "
+                         "under this version of RS Elastic (a file prepared by an older one): "
+                         "run Prepare Body")
+    raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")

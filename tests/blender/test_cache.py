@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import bpy
 
-from blender_helpers import make_bar
+from blender_helpers import fingerprint, make_bar
 from conftest import ROOT, USER_DIR
 
 REOPEN_SCRIPT = """
@@ -143,6 +143,25 @@ def test_a_change_of_youngs_modulus_or_density_reuses_the_modes_and_the_reduced_
     assert (stats["modes"], stats["reduced"]) == (1, 1)
     np.testing.assert_allclose(ext.bridge.prepared.for_object(obj).linear_modes.eigenvalues,
                                before.linear_modes.eigenvalues, rtol=1e-12)
+
+
+def test_a_body_prepared_under_other_rules_asks_to_be_prepared_again(ext, monkeypatch):
+    """A file prepared by another version (here: the modes' rules changed since, as a version
+    that moves them would) is not stale, but its preparation cannot be rebuilt under its keys:
+    Simulate refuses with one line that says so, and changes nothing; Prepare Body mends it."""
+    obj = prepare_bar(ext)
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 3
+    monkeypatch.setattr(ext.bridge.bodies, "MODES_RULES", "modes of another version")
+    ext.bridge.stage_cache._MEMORY.clear()
+    ext.bridge.prepared._BODIES.clear()
+    assert ext.bridge.staleness.stale_reason(obj) is None
+    before = fingerprint(obj)
+    with pytest.raises(RuntimeError, match="'Bar' must be prepared again: its preparation cannot "
+                       "be rebuilt under this version of RS Elastic"):
+        bpy.ops.rs_elastic.simulate()
+    assert fingerprint(obj) == before
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
 
 
 def test_corrupt_cache_file_is_reported_and_rebuilt(ext):
