@@ -38,29 +38,12 @@ import numpy as np
 
 from ..solver import cache, embed, fem, preparation, proxy, tetmesh
 from ..solver.body import PreparedBody
-from . import armature, estimates, mesh_cache, scene, stage_cache, staleness
+from . import armature, estimates, mesh_cache, scene, stage_cache, stage_rules, staleness
 from .jobs import Cancelled, Job
 from .scene import InputError
 
 # How the energy cubature is trained; part of its key.
 ENERGY_TRAINING = preparation.ENERGY_TRAINING
-# Version of what the energy key leaves out; bump it when that changes.
-ENERGY_RULES = "energy-3: trained at Young's modulus 1 Pa, in the modes at 1 kg/m^3"
-
-# Version of the automatic basis and cubature sizing and training range (solver.reduced): a
-# reduced cache built under other rules is rebuilt, not reused. Bump it when they change.
-REDUCED_RULES = "reduced-2: O(m^2) basis, cubature 1.25 rB, training to 180 deg"
-
-# Version of the pin rule (solver.embed.pin_surface); part of the modes key, so modes pinned
-# under another rule are rebuilt, not reused. Bump it when the rule changes.
-PIN_RULES = "surface pins 2: faces clamp by their tet-surface facets"
-
-# Version of what the modes stage holds; part of its key. Bump it when that changes.
-MODES_RULES = "modes 3: at Young's modulus 1 Pa and density 1 kg/m^3, moved to the body's"
-
-# Version of the painted stiffness rule (solver.preparation.stiffness_scale); part of a painted
-# body's modes key. Bump it when the rule changes.
-STIFFNESS_RULES = "painted stiffness 1: geometric in the mean of the tet's carried node weights"
 
 
 # --- inputs, read on the main thread --------------------------------------------------------------
@@ -113,16 +96,17 @@ class BodyInputs:
     def modes_key(self, tets_digest):
         """Key of the modes (at Young's modulus 1 Pa and density 1 kg/m³) of the tet mesh whose
         arrays hash to tets_digest: neither is in it (``preparation.unit_stiffness_modes``)."""
-        pins = (PIN_RULES, self.pin_weights, self.base_triangles, self.pins_hold_volume) \
-            if self.pin_weights is not None else "free"
+        pins = (stage_rules.PIN_RULES, self.pin_weights, self.base_triangles,
+                self.pins_hold_volume) if self.pin_weights is not None else "free"
         painted = () if self.stiffness_weights is None else (
-            (STIFFNESS_RULES, self.stiffness_weights, self.stiffness_ratio),)
-        return cache.content_key("modes", MODES_RULES, tets_digest, pins, self.poisson,
-                                 self.num_modes, *painted)
+            (stage_rules.STIFFNESS_RULES, self.stiffness_weights, self.stiffness_ratio),)
+        return cache.content_key("modes", stage_rules.MODES_RULES, tets_digest, pins,
+                                 self.poisson, self.num_modes, *painted)
 
     def reduced_key(self, modes_digest):
-        return cache.content_key("reduced", REDUCED_RULES, modes_digest, self.basis_size,
-                                 self.cubature_tets, self.cubature_tolerance, self.training_poses)
+        return cache.content_key("reduced", stage_rules.REDUCED_RULES, modes_digest,
+                                 self.basis_size, self.cubature_tets, self.cubature_tolerance,
+                                 self.training_poses)
 
 
 @dataclasses.dataclass
@@ -143,7 +127,7 @@ class EnergyInputs:
         Fung's stiffening for Fung only: StVK's cubature does not read it, so changing it
         reuses StVK's file)."""
         stiffening = (self.fung_stiffening,) if self.kind == "FUNG" else ()
-        return (ENERGY_RULES, self.poisson) + stiffening
+        return (stage_rules.ENERGY_RULES, self.poisson) + stiffening
 
     def for_body(self, body):
         """These inputs with the material of the PreparedBody (its painted stiffness, if any)."""

@@ -42,8 +42,7 @@ def require(obj):
     body = for_object(obj)
     if body is not None and body.deformer is not None:
         return body
-    if obj.rs_elastic.is_prepared:      # prepared, not stale, yet not rebuilt under its keys
-        raise InputError(f"'{obj.name}' must be prepared again: its preparation cannot be rebuilt "
-                         "under this version of RS Elastic (a file prepared by an older one): "
-                         "run Prepare Body")
+    if obj.rs_elastic.is_prepared:      # prepared, not stale, yet its stages were not rebuilt
+        raise InputError(f"'{obj.name}' must be prepared again: its preparation could not be "
+                         "rebuilt (the system console says why): run Prepare Body")
     raise InputError(f"'{obj.name}' is not prepared for its current mesh: run Prepare Body")

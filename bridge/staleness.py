@@ -1,6 +1,7 @@
 """Whether a prepared body still matches its object: Prepare records a fingerprint of what it read
-(mesh, modifiers, pins, a painted stiffness, settings) in `obj.rs_elastic["prepared_inputs"]`;
-`stale_reason` compares it with the object now (main thread).
+(mesh, modifiers, pins, a painted stiffness, settings, and the rules its stages were built by:
+`stage_rules`) in `obj.rs_elastic["prepared_inputs"]`; `stale_reason` compares it with the object
+now (main thread).
 
 The material model is not part of it: Simulate trains (or loads) the energy cubature of whichever
 model is set (`bodies.energy_stage`).
@@ -11,7 +12,7 @@ import bpy
 import numpy as np
 
 from ..solver import cache
-from . import mesh_cache
+from . import mesh_cache, stage_rules
 from .scene import InputError, pin_weights, stiffness_weights
 from .stage_cache import PREPARED_INPUTS
 
@@ -172,6 +173,7 @@ def _settings_fingerprint(settings):
                                          settings.cubature_tolerance, settings.training_poses))}
 
 
+_RULES = "version of the stages"   # the component a Prepare by another version differs in
 _GEOMETRY = {}   # object pointer -> (groups' names and indices..., geometry fingerprint), for draw
 
 
@@ -186,7 +188,8 @@ def fingerprint(obj, cached=False):
     entry = _GEOMETRY.get(obj.as_pointer()) if cached else None
     if entry is None or entry[0] != tag:
         entry = _GEOMETRY[obj.as_pointer()] = (tag, _geometry_fingerprint(obj))
-    return {**entry[1], **_settings_fingerprint(settings)}
+    # The stages' rules first: under other rules every other component may read differently too.
+    return {_RULES: stage_rules.prepared_rules(), **entry[1], **_settings_fingerprint(settings)}
 
 
 def forget_fingerprints(depsgraph_updates):
@@ -202,6 +205,8 @@ def forget_fingerprints(depsgraph_updates):
             return
 
 
+_OLDER_VERSION = ("it was prepared by another version of RS Elastic, whose cached stages this one "
+                  "cannot read: prepare again")
 _PAINTED = ("stiffness group", "stiffness ratio")   # components only a painted body has
 
 
@@ -212,6 +217,8 @@ def _what_changed(obj, before, now):
         value = now.get(name)
         if before.get(name) == value:
             continue
+        if name == _RULES:
+            return _OLDER_VERSION
         if name in ("pin group", "stiffness group") and value == "missing":
             group = getattr(obj.rs_elastic, name.replace(" ", "_"))
             return (f"{name} '{group}' no longer exists (renamed or deleted since Prepare Body): "
@@ -233,7 +240,7 @@ def stale_reason(obj, cached=False):
         return None
     record = settings.get(PREPARED_INPUTS)
     if record is None:
-        return "it was prepared by an older version of RS Elastic: prepare again"
+        return _OLDER_VERSION
     return _what_changed(obj, json.loads(record), fingerprint(obj, cached=cached))
 
 

@@ -2,6 +2,7 @@
 import json
 import os
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
@@ -145,21 +146,58 @@ def test_a_change_of_youngs_modulus_or_density_reuses_the_modes_and_the_reduced_
                                before.linear_modes.eigenvalues, rtol=1e-12)
 
 
-def test_a_body_prepared_under_other_rules_asks_to_be_prepared_again(ext, monkeypatch):
-    """A file prepared by another version (here: the modes' rules changed since, as a version
-    that moves them would) is not stale, but its preparation cannot be rebuilt under its keys:
-    Simulate refuses with one line that says so, and changes nothing; Prepare Body mends it."""
+OTHER_VERSION = ("'Bar': it was prepared by another version of RS Elastic, whose cached stages "
+                 "this one cannot read: prepare again")
+
+
+@pytest.mark.parametrize("how", ["rules changed", "no rules recorded"])
+def test_a_body_prepared_by_another_version_is_stale_until_prepared_again(ext, monkeypatch, how):
+    """A file prepared by another version: here the modes' rules changed since (as a version that
+    moves them would), or its record has no rules (a version before they were recorded). Its
+    stages cannot be read under this version's keys, so it is stale: the panel's line says so
+    before any operator runs, Simulate refuses with it and changes nothing, and Prepare Body
+    mends it."""
     obj = prepare_bar(ext)
     bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 3
-    monkeypatch.setattr(ext.bridge.bodies, "MODES_RULES", "modes of another version")
     ext.bridge.stage_cache._MEMORY.clear()
     ext.bridge.prepared._BODIES.clear()
-    assert ext.bridge.staleness.stale_reason(obj) is None
+    if how == "rules changed":
+        monkeypatch.setattr(ext.bridge.stage_rules, "MODES_RULES", "modes of another version")
+    else:
+        record = json.loads(obj.rs_elastic["prepared_inputs"])
+        del record["version of the stages"]
+        obj.rs_elastic["prepared_inputs"] = json.dumps(record, sort_keys=True)
+    assert ext.bridge.staleness.stale_reason(obj, cached=True) == OTHER_VERSION[len("'Bar': "):]
     before = fingerprint(obj)
-    with pytest.raises(RuntimeError, match="'Bar' must be prepared again: its preparation cannot "
-                       "be rebuilt under this version of RS Elastic"):
+    with pytest.raises(RuntimeError, match=re.escape(OTHER_VERSION)):
         bpy.ops.rs_elastic.simulate()
     assert fingerprint(obj) == before
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert ext.bridge.staleness.stale_reason(obj, cached=True) is None
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+
+
+def test_a_preparation_that_cannot_be_rebuilt_asks_to_be_prepared_again(ext, monkeypatch):
+    """Not stale, but its stages cannot be rebuilt (here the rebuild fails): Simulate refuses
+    with one line that says so and changes nothing; Prepare Body mends it."""
+    obj = prepare_bar(ext)
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 3
+    ext.bridge.stage_cache._MEMORY.clear()
+    ext.bridge.prepared._BODIES.clear()
+    rebuild = ext.bridge.bodies.prepare
+
+    def failing(inputs, job):
+        raise RuntimeError("the eigensolver did not converge")
+
+    monkeypatch.setattr(ext.bridge.bodies, "prepare", failing)
+    assert ext.bridge.staleness.stale_reason(obj) is None
+    before = fingerprint(obj)
+    with pytest.raises(RuntimeError, match=re.escape(
+            "'Bar' must be prepared again: its preparation could not be rebuilt (the system "
+            "console says why): run Prepare Body")):
+        bpy.ops.rs_elastic.simulate()
+    assert fingerprint(obj) == before
+    monkeypatch.setattr(ext.bridge.bodies, "prepare", rebuild)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
     assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
 
