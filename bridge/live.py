@@ -1,10 +1,11 @@
 """Live re-solve of a space-time edit: the preview follows the handles while they are edited.
 
 With a body's Live setting on, moving one of its handles' Empties or changing their keyframes
-re-solves the edit, warm-started from the last live solution, and shows the pose at the current
-frame as the preview shape key (bridge/preview.py's key, owned by the extension). Live never
-writes the bake: only Solve and Bake does, so no edit made live can replace work. Outside Object
-Mode it writes nothing (as the mode preview); the pose shows once the body is back in Object Mode.
+re-solves the edit, warm-started from the last live solution of the same preparation, and shows
+the pose at the current frame as the preview shape key (bridge/preview.py's key, owned by the
+extension). Live never writes the bake: only Solve and Bake does, so no edit made live can
+replace work. Outside Object Mode it writes nothing (as the mode preview); the pose shows once the
+body is back in Object Mode.
 
 Flow (main thread unless said): ``on_depsgraph_update`` notes which bodies' handles changed; a
 ``bpy.app.timers`` callback (``_tick``) gathers the problem (bpy), runs ``_solve`` on a worker
@@ -69,7 +70,9 @@ def _solve(job):
     """(Z, inputs, status) for a gathered ``SpaceTimeJob``, warm-started if a fitting Z exists."""
     previous = SOLUTIONS.get(job.object_name)
     shape = (job.problem.frames, job.problem.num_modes)
-    warm = (previous is not None and previous.Z.shape == shape
+    # Only the same preparation's Z: another one's modal coordinates mean another motion
+    # (scaled by another density, or other modes).
+    warm = (previous is not None and previous.body is job.body and previous.Z.shape == shape
             and previous.frames == job.frames)
     if warm:
         result = spacetime.solve(job.problem, iterations=LIVE_GN_STEPS, initial=previous.Z,
