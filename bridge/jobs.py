@@ -3,7 +3,8 @@ synchronously (scripts and background mode, where modal operators and timers nev
 
 The work is a plain function `work(job)` that must not touch bpy: it reads arrays prepared on the
 main thread, calls `job.step(fraction, message)` between stages (which raises `Cancelled` once Esc
-was pressed), and returns a result that the operator applies to Blender on the main thread.
+was pressed; an optional `note` says something about the run while it lasts, such as why it is
+slow), and returns a result that the operator applies to Blender on the main thread.
 
 Reading the scene can itself take long (a take read frame by frame). Such an operator's
 `make_work` is a generator: it yields (fraction, message) between pieces of main-thread reading
@@ -40,15 +41,16 @@ class Job:
         self._thread = None
         self.fraction = 0.0
         self.message = "Starting"
+        self.note = None        # a sentence on the run so far, or None (panels draw it wrapped)
         self.warnings = []
         self.result = None
         self.error = None
 
     # --- called by the work --------------------------------------------------------------------------
-    def step(self, fraction, message):
+    def step(self, fraction, message, note=None):
         if self._cancel.is_set():
             raise Cancelled()
-        self.fraction, self.message = float(fraction), message
+        self.fraction, self.message, self.note = float(fraction), message, note
 
     def warn(self, message):
         self.warnings.append(message)
@@ -231,16 +233,19 @@ class JobOperator:
         """The cursor's progress, the status bar and the panels' bar, redrawn only when what
         they show changed: a redraw runs every panel's Python draw, which waits for the worker
         to hand over Python's lock each time, and would slow the main thread (and Esc) down."""
-        shown = (round(100 * job.fraction), job.message)
+        shown = (round(100 * job.fraction), job.message, job.note)
         if shown == self._shown:
             return
-        if shown[0] != (self._shown or (None,))[0]:       # the bar moved
+        before = self._shown or (None, None, None)
+        if shown[0] != before[0]:                           # the bar moved
             context.window_manager.progress_update(shown[0])
+        if shown[0] != before[0] or shown[2] != before[2]:  # ... or a note came or went
             _redraw_sidebars(context)
         self._shown = shown
         if context.workspace is not None:
+            note = f" - {job.note}" if job.note else ""
             context.workspace.status_text_set(
-                f"{self.bl_label}: {job.message} ({shown[0]} %) - Esc to cancel")
+                f"{self.bl_label}: {job.message} ({shown[0]} %){note} - Esc to cancel")
 
     def modal(self, context, event):
         job = self._job

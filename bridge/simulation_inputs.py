@@ -211,11 +211,10 @@ def run(job_inputs, job):
     simulation, first = job_inputs.simulation, job_inputs.frames[0]
 
     def progress(step, total):
-        message = f"frame {first + step} of {job_inputs.frames[-1]}"
         slow = slow_frames(simulation, first)
-        if slow:                         # say why it is slow while it still runs
-            message += f" (slow since frame {slow[0]}: steps cut to keep tets from inverting)"
-        job.step(step / total, message)
+        note = (f"Slow since frame {slow[0]}: steps are cut to keep tets from inverting"
+                if slow else None)       # why it is slow, while it still runs
+        job.step(step / total, f"frame {first + step} of {job_inputs.frames[-1]}", note)
 
     if job_inputs.settle:
         job.step(0.0, "settling into static equilibrium")

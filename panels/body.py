@@ -29,15 +29,24 @@ def draw_lines(layout, text, icon='NONE'):
 
 def draw_progress(layout, obj, idname):
     """While operator `idname` (e.g. "rs_elastic.prepare") runs on `obj` as a modal job: its
-    progress as a bar (Blender 4.0 on) or a line, and whether Esc cancels it. True if drawn."""
+    progress as a bar (Blender 4.0 on) or a line, its note, and whether Esc cancels it. A message
+    too long for the bar goes under it, wrapped. True if drawn."""
     job = jobs.running_job(obj)
     if job is None or job.idname != idname:
         return False
-    text = f"{job.message} ({100 * job.fraction:.0f} %)"
+    percent = f"{100 * job.fraction:.0f} %"
+    text = f"{job.message} ({percent})"
+    below = None
+    if len(text) > WRAP:            # the bar would cut it: the percentage in it, the words under
+        text, below = percent, job.message
     if hasattr(layout, "progress"):
         layout.progress(factor=job.fraction, type='BAR', text=text)
     else:
         layout.label(text=text, icon='TIME')
+    if below:
+        draw_lines(layout, below)
+    if job.note:
+        draw_lines(layout, job.note, icon='INFO')
     layout.label(text="Esc cancels" if not job.is_cancelled() else "Cancelling", icon='CANCEL')
     return True
 

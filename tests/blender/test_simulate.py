@@ -199,9 +199,19 @@ def test_frames_whose_steps_were_cut_to_the_shortest_are_reported_as_slow(ext, c
         return [line for line in capfd.readouterr().out.splitlines()
                 if line.startswith("Warning: ") and "were slow" in line]
 
+    shown = []                                       # (message, note) of each progress step
+    step = ext.bridge.jobs.Job.step
+
+    def recorded(job, fraction, message, note=None):
+        shown.append((message, note))
+        return step(job, fraction, message, note)
+
+    monkeypatch.setattr(ext.bridge.jobs.Job, "step", recorded)
     capfd.readouterr()
     assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
     assert slow_warnings() == []
+    assert [note for message, note in shown if message.startswith("frame ")] == [None] * 3
+    shown.clear()
     real_check = dynamics.Simulation._inverted_tets
 
     def failing_above_the_shortest(sim):
@@ -217,6 +227,10 @@ def test_frames_whose_steps_were_cut_to_the_shortest_are_reported_as_slow(ext, c
         f"Warning: 'Bar': 3 of 3 frames (from frame 2) were slow: their steps were cut to "
         f"1/{cut} to keep every tet from inverting. A larger Basis Size (0 is automatic), more "
         "Substeps or a stiffer material usually avoid it"]
+    # While it ran, the progress said so from the first slow frame on.
+    slow = "Slow since frame 2: steps are cut to keep tets from inverting"
+    assert [(m, n) for m, n in shown if m.startswith("frame ")] == [
+        (f"frame {frame} of 4", slow) for frame in (2, 3, 4)]
     assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3, 4]
 
 

@@ -102,7 +102,8 @@ class _Node:
         """(header row, body column) of a sub-panel as first drawn: no body while closed."""
         return self._add('row'), None if default_closed else self._add('column')
 
-    progress = separator
+    def progress(self, factor=0.0, type='BAR', text=""):
+        self._item('progress', [text], 'NONE')
 
 
 def _icon_only(child):

@@ -4,8 +4,9 @@ Simulate and Bake within a substep's work, with nothing changed."""
 import time
 
 from body_state import body_state
+from panel_fit import MEASURER, cut_labels
 from panel_items import RECORDER
-from sidebar import drawn_panels
+from sidebar import drawn_panels, scroll
 
 QUICK_BAR = """
 import sys, threading, time, blender_helpers as h
@@ -52,18 +53,21 @@ def _operator(idname, panel=None):
     return f"OPERATOR_NAMES = ({f'RS_ELASTIC_OT_{name}'!r}, {idname!r})\nPANEL = {panel!r}\n"
 
 
-def _wait_for_progress(gui, idname, panel, least, timeout=180):
+def _wait_for_progress(gui, idname, panel, least, timeout=180, measure=False):
     """Poll until the running job is past `least`; return (before, after, progress items) of
-    its panel's draw then."""
+    its panel's draw then, and with `measure` the panel's texts that do not fit the sidebar,
+    measured in the same call (``panel_fit``)."""
     code = _operator(idname, panel) + PANEL_PROGRESS
+    if measure:
+        code = MEASURER + code + "result.append(cut_labels([PANEL])[PANEL])\n"
     x, y = gui.point("view", 0.5, 0.5)
     deadline = time.monotonic() + timeout
     while True:
         gui.mouse_move(x, y + (time.monotonic() % 2))   # events keep the modal timer going
-        before, after, bars = gui.run(code)
+        before, after, bars, *cut = gui.run(code)
         assert before is not None, f"{idname} is not running as a modal operator"
         if before >= least:
-            return before, after, bars
+            return (before, after, bars, *cut)
         assert time.monotonic() < deadline, f"{idname}: no progress in {timeout} s"
         time.sleep(0.2)
 
@@ -72,7 +76,8 @@ def _check_bar(before, after, bars):
     assert len(bars) == 1, f"the panel draws no progress bar while the job runs: {bars}"
     _, text, factor = bars[0]
     assert before <= factor <= after, (before, factor, after)
-    assert f"({100 * factor:.0f} %)" in text, text
+    percent = f"{100 * factor:.0f} %"      # a message too long for the bar goes under it
+    assert text == percent or text.endswith(f"({percent})"), text
 
 
 def _wait_until_ended(gui, idname, timeout=300):
@@ -90,10 +95,15 @@ def test_a_modal_prepare_draws_a_progress_bar_at_its_fraction(gui):
     assert gui.run("with override():\n"
                    "    result = sorted(bpy.ops.rs_elastic.prepare('INVOKE_DEFAULT'))") == \
         ["RUNNING_MODAL"]
-    _check_bar(*_wait_for_progress(gui, "rs_elastic.prepare", "RS_ELASTIC_PT_modes", 0.05))
+    # The bar at the job's fraction, and every word of the panel fits the sidebar (fTetWild's
+    # estimate, the first message, is too long for the bar: it goes under it).
+    *progress, cut = _wait_for_progress(gui, "rs_elastic.prepare", "RS_ELASTIC_PT_modes", 0.05,
+                                        measure=True)
+    _check_bar(*progress)
     # The real sidebar draws the Modes panel with the bar (Blender's own layout.progress).
     assert ("RS_ELASTIC_PT_modes", "Bar") in drawn_panels(gui)
     gui.screenshot("progress")
+    assert cut == [], cut
     gui.key("Escape")
     _wait_until_ended(gui, "rs_elastic.prepare")
     # Once it ended, no bar.
@@ -174,6 +184,75 @@ def test_esc_stops_a_simulation_within_a_substep_with_nothing_changed(gui):
         {k: v for k, v in before.items() if k != "cache"}
     assert gui.run("o = bpy.data.objects['Bar']; result = [o.data.shape_keys is None, "
                    "[m.name for m in o.modifiers]]") == before_keys
+
+
+# Every det F check of a step longer than the shortest fails (Simulation._inverted_tets wrapped
+# in the class; the shortest are checked for real), so every frame's steps are cut to the
+# shortest: each frame is slow. Each check also sleeps a little, so the run lasts long enough
+# to look at (about 30 checks a frame).
+FORCED_SLOW = """
+DYNAMICS = sys.modules["bl_ext.user_default.rs_elastic.solver.dynamics"]
+REAL_CHECK = DYNAMICS.Simulation._inverted_tets
+def failing_above_the_shortest(sim):
+    time.sleep(0.002)
+    count, smallest, finite, ratios = REAL_CHECK(sim)
+    if sim.state.dt > 1.5 * sim.h / sim.substeps / 2 ** DYNAMICS.MAX_STEP_SPLITS:
+        return 1, -1.0, True, ratios
+    return count, smallest, finite, ratios
+DYNAMICS.Simulation._inverted_tets = failing_above_the_shortest
+s = bpy.data.objects["Bar"].rs_elastic
+s.material_model, s.substeps = 'LINEAR', 1
+bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 100
+"""
+RESTORE_CHECK = "DYNAMICS.Simulation._inverted_tets = REAL_CHECK"
+SLOW_NOTE = "Slow since frame 2: steps are cut to keep tets from inverting"
+
+
+
+def test_a_slow_simulation_says_why_under_its_bar_in_words_that_fit(gui):
+    """While frames are slow, the Simulate panel says why under its bar (the bar keeps the frame
+    and the percentage), every text of it fits the sidebar; the bake lands with one warning in
+    the report log."""
+    gui.run(QUICK_BAR, timeout=300)
+    gui.run(FORCED_SLOW)
+    try:
+        gui.run("watch_panels()")
+        drawn_panels(gui)                           # drawn: the sidebar knows its length
+        scroll(gui, "VIEW_3D", "UI", 5)             # the Simulation panel (at the end) in view
+        assert gui.run("with override():\n"
+                       "    result = sorted(bpy.ops.rs_elastic.simulate('INVOKE_DEFAULT'))") == \
+            ["RUNNING_MODAL"]
+        code = (_operator("rs_elastic.simulate", "RS_ELASTIC_PT_simulate") + PANEL_PROGRESS
+                + "result.append(panel_items([PANEL])[PANEL])")
+        deadline = time.monotonic() + 120
+        while True:
+            before, after, bars, items = gui.run(code)
+            assert before is not None, "Simulate and Bake is not running as a modal operator"
+            labels = [text for kind, text, _ in items if kind == "label"]
+            if SLOW_NOTE.split(":")[0] + ":" in labels:
+                break
+            assert time.monotonic() < deadline, f"no slow note under the bar: {items}"
+            time.sleep(0.2)
+        _check_bar(before, after, bars)
+        assert bars[0][1].startswith("frame "), bars
+        # The note, wrapped as panels wrap a sentence, under the bar.
+        assert " ".join(labels[labels.index("Slow since frame 2:"):][:3]).startswith(
+            "Slow since frame 2: steps are cut"), labels
+        cut = cut_labels(gui, ["RS_ELASTIC_PT_simulate"])
+        drawn_panels(gui)                           # the sidebar grown by the note's lines
+        scroll(gui, "VIEW_3D", "UI", 5)
+        assert ("RS_ELASTIC_PT_simulate", "Bar") in drawn_panels(gui)
+        gui.screenshot("slow")
+        assert cut == {"RS_ELASTIC_PT_simulate": []}, cut
+        _wait_until_ended(gui, "rs_elastic.simulate")
+        reports = gui.run("result = reports()")
+        assert any("'Bar': 99 of 99 frames (from frame 2) were slow" in line
+                   for line in reports), reports
+        assert gui.run("result = sys.modules['bl_ext.user_default.rs_elastic.bridge.bake']"
+                       ".bake_frames(bpy.data.objects['Bar'])") == list(range(1, 101))
+    finally:
+        gui.run(RESTORE_CHECK)
+        scroll(gui, "VIEW_3D", "UI", -5)            # the sidebar back at its top, for later tests
 
 
 # A handle keyed over a long range, many iterations allowed. This bar's solve is over in a
