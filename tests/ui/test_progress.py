@@ -1,6 +1,7 @@
 """Long operators in the real window: while Prepare Body or Simulate and Bake runs modal, its panel
-draws a progress bar (Blender's `layout.progress`) at the job's fraction, and a real Esc key ends
-Simulate and Bake within a substep's work, with nothing changed."""
+draws a progress bar (Blender's `layout.progress`) at the job's fraction, with its words fitting
+the sidebar (a slow simulation's note under the bar), and a real Esc key ends Simulate and Bake
+within a substep's work, with nothing changed."""
 import time
 
 from body_state import body_state
@@ -208,7 +209,6 @@ RESTORE_CHECK = "DYNAMICS.Simulation._inverted_tets = REAL_CHECK"
 SLOW_NOTE = "Slow since frame 2: steps are cut to keep tets from inverting"
 
 
-
 def test_a_slow_simulation_says_why_under_its_bar_in_words_that_fit(gui):
     """While frames are slow, the Simulate panel says why under its bar (the bar keeps the frame
     and the percentage), every text of it fits the sidebar; the bake lands with one warning in
@@ -217,8 +217,6 @@ def test_a_slow_simulation_says_why_under_its_bar_in_words_that_fit(gui):
     gui.run(FORCED_SLOW)
     try:
         gui.run("watch_panels()")
-        drawn_panels(gui)                           # drawn: the sidebar knows its length
-        scroll(gui, "VIEW_3D", "UI", 5)             # the Simulation panel (at the end) in view
         assert gui.run("with override():\n"
                        "    result = sorted(bpy.ops.rs_elastic.simulate('INVOKE_DEFAULT'))") == \
             ["RUNNING_MODAL"]
@@ -239,8 +237,8 @@ def test_a_slow_simulation_says_why_under_its_bar_in_words_that_fit(gui):
         assert " ".join(labels[labels.index("Slow since frame 2:"):][:3]).startswith(
             "Slow since frame 2: steps are cut"), labels
         cut = cut_labels(gui, ["RS_ELASTIC_PT_simulate"])
-        drawn_panels(gui)                           # the sidebar grown by the note's lines
-        scroll(gui, "VIEW_3D", "UI", 5)
+        drawn_panels(gui)            # drawn with the note: the sidebar knows its new length
+        scroll(gui, "VIEW_3D", "UI", 5)              # the Simulation panel (at the end) in view
         assert ("RS_ELASTIC_PT_simulate", "Bar") in drawn_panels(gui)
         gui.screenshot("slow")
         assert cut == {"RS_ELASTIC_PT_simulate": []}, cut
