@@ -83,6 +83,8 @@ def test_after_a_prepare_of_another_material_live_starts_cold_and_meets_the_move
     assert getattr(obj.rs_elastic, setting) != value
     setattr(obj.rs_elastic, setting, value)
     assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    if setting == "density":
+        assert ext.bridge.stage_cache.stats["modes"] == 1         # the modes were moved
     for height in (-0.6, -0.5):
         target = np.array(lifted(obj, height))
         empty.location = target
