@@ -3,7 +3,7 @@ the motion continued with it."""
 import bpy
 
 from ..bridge import take
-from .body import RSElasticPanel, draw_progress
+from .body import RSElasticPanel, drawn_body, draw_progress
 
 
 class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
@@ -12,7 +12,7 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        obj = context.active_object
+        obj = drawn_body(self.layout, context)
         settings = obj.rs_elastic
         layout = self.layout
         layout.prop(settings, "take_source")

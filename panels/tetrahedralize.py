@@ -2,7 +2,7 @@
 import bpy
 
 from ..bridge import estimates
-from .body import RSElasticPanel, drawn_body, draw_lines
+from .body import RSElasticPanel, drawn_body, draw_lines, draw_progress
 
 
 class RS_ELASTIC_PT_tet_mesh(RSElasticPanel, bpy.types.Panel):
@@ -24,6 +24,7 @@ class RS_ELASTIC_PT_tet_mesh(RSElasticPanel, bpy.types.Panel):
             if over:
                 draw_lines(layout, "Over the Time Limit: a new tet mesh is refused")
         layout.operator("rs_elastic.tetrahedralize", icon='MESH_ICOSPHERE')
+        draw_progress(layout, obj, "rs_elastic.tetrahedralize")
         if settings.tets_key:
             col = layout.column(align=True)
             col.label(text=f"{settings.tet_node_count:,} nodes, {settings.tet_count:,} tets")

@@ -16,7 +16,7 @@ class RecordingLayout:
         self.active = True
 
     def _child(self, *args, **kwargs):
-        return RecordingLayout(self.log)
+        return type(self)(self.log)
 
     row = column = box = split = _child
 
@@ -45,7 +45,7 @@ class RecordingLayout:
         """(header, body) of a sub-panel (UILayout.panel): the body is recorded too."""
         assert "panel" in bpy.types.UILayout.bl_rna.functions   # this Blender has sub-panels
         assert isinstance(idname, str) and idname and isinstance(default_closed, bool)
-        return RecordingLayout(self.log), RecordingLayout(self.log)
+        return type(self)(self.log), type(self)(self.log)
 
     def template_list(self, list_type, list_id, data, name, active_data, active_name, **kwargs):
         assert hasattr(bpy.types, list_type)
@@ -54,16 +54,24 @@ class RecordingLayout:
 
 
 def draw_all():
-    log = []
+    return [item for log in draw_each().values() for item in log]
+
+
+def draw_each(layout=RecordingLayout):
+    """{panel class name: what it recorded} of every registered RS Elastic panel whose poll
+    passes (an import of the source tree under another package name leaves unregistered
+    copies of the classes behind)."""
+    logs = {}
     for cls in bpy.types.Panel.__subclasses__():
-        if not cls.__name__.startswith("RS_ELASTIC_PT"):
+        if not (cls.__name__.startswith("RS_ELASTIC_PT") and cls.is_registered
+                and cls.poll(bpy.context)):
             continue
-        panel = type("Fake", (), {"layout": RecordingLayout(log)})()
-        if cls.poll(bpy.context):
-            if hasattr(cls, "draw_header"):
-                cls.draw_header(panel, bpy.context)
-            cls.draw(panel, bpy.context)
-    return log
+        log = logs[cls.__name__] = []
+        panel = type("Fake", (), {"layout": layout(log)})()
+        if hasattr(cls, "draw_header"):
+            cls.draw_header(panel, bpy.context)
+        cls.draw(panel, bpy.context)
+    return logs
 
 
 def test_panels_show_counts_frequencies_and_mnf(ext):
@@ -125,3 +133,63 @@ def test_the_space_time_panel_shows_the_objective_before_and_after_and_every_ste
     assert labels.count(f"{len(history) - 1} Steps") == drawn
     steps = [text for text in labels if text[:3].strip().isdigit() and "   " in text]
     assert steps == [f"{i:3d}   {value:.6g}" for i, value in enumerate(history)] * drawn
+
+
+class OwnerRecordingLayout(RecordingLayout):
+    """Also records whose data each property edits, ("owner", name, ID name), and the context
+    pointers the layout's buttons get, ("context", name, ID name)."""
+
+    def prop(self, data, name, **kwargs):
+        super().prop(data, name, **kwargs)
+        self.log.append(("owner", name, data.id_data.name))
+
+    def context_pointer_set(self, name, data):
+        self.log.append(("context", name, data.name))
+
+
+def test_with_a_handle_active_every_panel_shows_and_acts_on_its_body(ext):
+    """Selecting a handle's Empty keeps the sidebar on its body: no panel edits the Empty's own
+    (unused) settings, and every panel with buttons points them at the body (the operators
+    read the active object)."""
+    from blender_helpers import add_tip_handle, make_active
+    obj = make_bar(cuts=3)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.1, 3
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    empty, _ = add_tip_handle(obj, {1: (4.0, 0.5, 0.5)})
+    make_active(empty)
+    logs = draw_each(OwnerRecordingLayout)
+    assert "RS_ELASTIC_PT_take" in logs and "RS_ELASTIC_PT_spacetime" in logs, sorted(logs)
+    for panel, log in logs.items():
+        owners = {item[2] for item in log if item[0] == "owner"}
+        assert empty.name not in owners, (panel, sorted(owners))
+        if any(item[0] == "operator" for item in log):
+            assert ("context", "active_object", obj.name) in log, (panel, log)
+
+
+def test_each_long_operator_draws_its_progress_in_the_panel_of_its_button(ext):
+    """While a long operator runs on the body as a modal job, the panel holding its button
+    draws its progress (here as a line: the recording layout has no bar) and Esc's hint, and no
+    other panel does."""
+    from blender_helpers import add_tip_handle, make_active
+    obj = make_bar(cuts=3)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.1, 3
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    add_tip_handle(obj, {1: (4.0, 0.5, 0.5)})
+    make_active(obj)
+    jobs = ext.bridge.jobs
+    long_operators = sorted(cls.bl_idname for cls in ext.operators.CLASSES
+                            if issubclass(cls, jobs.JobOperator))
+    assert {"rs_elastic.prepare", "rs_elastic.tetrahedralize", "rs_elastic.simulate",
+            "rs_elastic.fit_material"} <= set(long_operators), long_operators
+    try:
+        for idname in long_operators:
+            job = jobs.Job(lambda job: None, idname, obj.name)
+            job.fraction, job.message = 0.4, "Working"
+            jobs.RUNNING[obj.name] = job
+            logs = draw_each()
+            buttons = sorted(p for p, log in logs.items() if ("operator", idname) in log)
+            bars = sorted(p for p, log in logs.items() if ("label", "Working (40 %)") in log)
+            hints = sorted(p for p, log in logs.items() if ("label", "Esc cancels") in log)
+            assert buttons and bars == buttons and hints == buttons, (idname, buttons, bars)
+    finally:
+        jobs.RUNNING.pop(obj.name, None)

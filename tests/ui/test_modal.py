@@ -107,13 +107,18 @@ def test_a_modal_prepare_shows_progress_and_esc_cancels_it_with_nothing_changed(
 
 
 MAIN_THREAD_SLACK = 1.0      # s
+# The work's next check after Esc may come later than its checks came before: its thread
+# shares Python's lock with the main thread, which redraws the sidebar once Esc is heard
+# ("Cancelling", the long message wrapped under the bar); measured up to 0.12 s after checks
+# 0.03 s apart.
+CHECK_SLACK = 0.25           # s
 
 
 def _check_latency(gui, times, pressed, delivered, stage):
     """Esc must end the job at the work's next cancel check. The latency from the key press to
     the operator's end is the key's delivery; Blender's main thread hearing it (the modal handler
     calls the job's cancel); the work's next check seeing the flag (at most one period of its
-    checks in that stage); the work unwinding (the mesher kills its process); and the main thread
+    checks in that stage, and CHECK_SLACK); the work unwinding (the mesher kills its process); and the main thread
     noticing the ended worker (its timer runs every CANCEL_POLL once Esc was heard). The work
     must see the flag at its next check; the whole must stay within the sum of those parts,
     with twice the lag the main thread had hearing the key, one POLL, and MAIN_THREAD_SLACK for
@@ -134,6 +139,6 @@ def _check_latency(gui, times, pressed, delivered, stage):
           f"every {1000 * period:.0f} ms at most before the key), the work stopped after "
           f"{1000 * (stopped - pressed):.0f} ms, the operator ended after "
           f"{1000 * latency:.0f} ms (bound {1000 * bound:.0f} ms)")
-    assert seen - cancel <= period + 0.05, \
+    assert seen - cancel <= period + CHECK_SLACK, \
         f"the work saw the cancel {seen - cancel:.3f} s after Esc, its checks {period:.3f} s apart"
     assert latency < bound, f"Esc took {latency:.3f} s to end Prepare Body (bound {bound:.3f} s)"

@@ -333,10 +333,12 @@ def _solve_and_cancel(gui):
         == ["RUNNING_MODAL"]
     gui.run(_operator("rs_elastic.solve_spacetime") + WATCH_SOLVE)
     # The bar in the Space-Time panel, at the job's fraction, once an iteration is done.
-    _check_bar(*_wait_for_progress(gui, "rs_elastic.solve_spacetime", "RS_ELASTIC_PT_spacetime",
-                                   0.0))
+    *progress, cut = _wait_for_progress(gui, "rs_elastic.solve_spacetime",
+                                        "RS_ELASTIC_PT_spacetime", 0.0, measure=True)
+    _check_bar(*progress)
     assert ("RS_ELASTIC_PT_spacetime", "Bar") in drawn_panels(gui)
     gui.screenshot("progress")
+    assert cut == [], cut
 
     # Esc in the middle of the solve, the worker let go just before.
     gui.run("GATE.set()")
@@ -407,10 +409,11 @@ def test_take_from_animation_reads_frame_by_frame_with_a_bar_and_esc_puts_the_fr
                        "bpy.ops.rs_elastic.take_from_animation('INVOKE_DEFAULT'))") == \
             ["RUNNING_MODAL"]
         assert gui.run("result = len(READ)") < 400      # invoke did not read them all
-        bar = _wait_for_progress(gui, "rs_elastic.take_from_animation", "RS_ELASTIC_PT_take",
-                                 0.05)
+        *bar, cut = _wait_for_progress(gui, "rs_elastic.take_from_animation",
+                                       "RS_ELASTIC_PT_take", 0.05, measure=True)
         _check_bar(*bar)
         assert "reading frame" in bar[2][0][1], bar
+        assert cut == [], cut
         gui.key("Escape")
         _wait_until_ended(gui, "rs_elastic.take_from_animation")
         read, frame = gui.run("result = [len(READ), bpy.context.scene.frame_current]")
