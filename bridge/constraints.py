@@ -145,10 +145,3 @@ def read_pose_keys(obj, frames):
     return sorted(poses)
 
 
-def body_of_handle(empty, blender_scene):
-    """The mesh of `blender_scene` with a handle bound to `empty`, or None (the first such
-    mesh, in the scene's order, if several share the Empty)."""
-    for obj in blender_scene.objects:
-        if obj.type == 'MESH' and any(h.empty == empty for h in obj.rs_elastic.handles):
-            return obj
-    return None

@@ -153,8 +153,8 @@ class JobOperator:
         raise NotImplementedError
 
     def _start(self, context):
-        from .scene import InputError
-        obj = context.active_object
+        from .scene import InputError, acted_on
+        obj = acted_on(context)
         try:
             return Job(self.make_work(context), python_idname(self.bl_idname),
                        obj.name if obj else "")

@@ -14,7 +14,9 @@ def require_mesh_object(obj):
     if obj is None:
         raise InputError("No active object: select a mesh object")
     if obj.type != 'MESH':
-        raise InputError(f"'{obj.name}' is a {obj.type.lower()}, not a mesh")
+        kind = obj.type.lower().replace("_", " ")
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise InputError(f"'{obj.name}' is {article} {kind}, not a mesh")
     require_local(obj)
     if obj.mode == 'EDIT':
         # Edit-mode changes are not in obj.data until the mode is left.
@@ -190,10 +192,30 @@ def scene_gravity(blender_scene):
     return gravity
 
 
+def body_of_handle(empty, blender_scene):
+    """The mesh of `blender_scene` with a handle bound to `empty`, or None (the first such
+    mesh, in the scene's order, if several share the Empty)."""
+    for obj in blender_scene.objects:
+        if obj.type == 'MESH' and any(h.empty == empty for h in obj.rs_elastic.handles):
+            return obj
+    return None
+
+
+def acted_on(context):
+    """The object RS Elastic's panels and operators work on: the active object or, when that is
+    a handle's Empty, the mesh whose handle it is (the sidebar shows that body, so F3 and
+    shortcuts act on it too), or None."""
+    obj = context.active_object
+    if obj is not None and obj.type == 'EMPTY':
+        return body_of_handle(obj, context.scene) or obj
+    return obj
+
+
 def active_mesh_or_report(operator, context):
-    """The active mesh object, or None after reporting why not (for short operators)."""
+    """The mesh the operator acts on (``acted_on``), or None after reporting why not (for
+    short operators)."""
     try:
-        return require_mesh_object(context.active_object)
+        return require_mesh_object(acted_on(context))
     except InputError as exc:
         operator.report({'ERROR'}, str(exc))
         return None

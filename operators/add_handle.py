@@ -52,7 +52,7 @@ class RS_ELASTIC_OT_add_handle(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            obj = scene.require_mesh_object(context.active_object)
+            obj = scene.require_mesh_object(scene.acted_on(context))
             group_name, indices = handle_vertices(obj, self.vertex_group)
             if len(indices) == 0:
                 raise InputError(f"Vertex group '{group_name}' has no vertices")
@@ -84,11 +84,11 @@ class RS_ELASTIC_OT_remove_handle(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = context.active_object
+        obj = scene.acted_on(context)
         return obj is not None and obj.type == 'MESH' and len(obj.rs_elastic.handles) > 0
 
     def execute(self, context):
-        settings = context.active_object.rs_elastic
+        settings = scene.acted_on(context).rs_elastic
         index = min(settings.active_handle, len(settings.handles) - 1)
         settings.handles.remove(index)
         settings.active_handle = max(0, index - 1)

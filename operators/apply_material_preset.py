@@ -19,16 +19,18 @@ class RS_ELASTIC_OT_apply_material_preset(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return context.active_object is not None and context.active_object.type == 'MESH'
+        obj = scene.acted_on(context)
+        return obj is not None and obj.type == 'MESH'
 
     def execute(self, context):
+        obj = scene.acted_on(context)
         try:
-            scene.require_local(context.active_object)
+            scene.require_local(obj)
         except InputError as exc:       # a linked body's settings are not this file's to set
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
         _, E, nu, rho = MATERIAL_PRESETS[self.preset]
-        settings = context.active_object.rs_elastic
+        settings = obj.rs_elastic
         settings.youngs_modulus, settings.poisson_ratio, settings.density = E, nu, rho
         return {'FINISHED'}
 

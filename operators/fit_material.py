@@ -12,7 +12,7 @@ class RS_ELASTIC_OT_fit_material(jobs.JobOperator, bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def make_work(self, context):
-        obj = scene.require_mesh_object(context.active_object)
+        obj = scene.require_mesh_object(scene.acted_on(context))
         inputs = take.gather_fit(obj, context.scene)
         self._object_name = inputs.object_name
         return lambda job: take.fit_work(inputs, job)

@@ -30,7 +30,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
         return context.window_manager.invoke_props_dialog(self)
 
     def draw(self, context):
-        obj = context.active_object
+        obj = scene.acted_on(context)
         layout = self.layout
         keys = obj.data.shape_keys if obj is not None and obj.type == 'MESH' else None
         if keys is None:
@@ -54,7 +54,7 @@ class RS_ELASTIC_OT_interpolate_shape_keys(bpy.types.Operator):
             return {'CANCELLED'}
 
     def _run(self, context):
-        obj = scene.require_mesh_object(context.active_object)
+        obj = scene.require_mesh_object(scene.acted_on(context))
         bake.require_writable(obj, "write shape keys")
         if self.output == 'ANIMATION':
             if self.frame_end <= self.frame_start:

@@ -3,7 +3,7 @@ RS deformer, and the energy cubature of a StVK or Fung material (so its first si
 fast)."""
 import bpy
 
-from ..bridge import bodies, jobs, preview, stage_cache, staleness, tet_overlay, writes
+from ..bridge import bodies, jobs, preview, scene, stage_cache, staleness, tet_overlay, writes
 from ..bridge.scene import InputError
 
 # What Prepare records in the object (settings, then ID properties), undone together on failure.
@@ -25,8 +25,9 @@ class RS_ELASTIC_OT_prepare(jobs.JobOperator, bpy.types.Operator):
                     "be computed is refused (the command line's --only bake)")
 
     def make_work(self, context):
-        inputs = bodies.read_inputs(context.active_object, context.evaluated_depsgraph_get())
-        inputs.energy = bodies.energy_inputs(context.active_object)
+        obj = scene.acted_on(context)
+        inputs = bodies.read_inputs(obj, context.evaluated_depsgraph_get())
+        inputs.energy = bodies.energy_inputs(obj)
         inputs.cached_only = self.cached_only
         self._inputs = inputs
         return lambda job: bodies.prepare(inputs, job)

@@ -27,7 +27,7 @@ class RS_ELASTIC_OT_simulate(jobs.JobOperator, bpy.types.Operator):
     _energy_jobs = 0
 
     def make_work(self, context):
-        obj = context.active_object
+        obj = scene.acted_on(context)
         bake.require_target(scene.require_body(obj))     # before any training
         work = None
         if self._energy_jobs < MAX_ENERGY_JOBS:

@@ -1,7 +1,7 @@
 """Solve a space-time edit of the active body and bake it into shape keys."""
 import bpy
 
-from ..bridge import bake, jobs, preview, spacetime_inputs, writes
+from ..bridge import bake, jobs, preview, scene, spacetime_inputs, writes
 from ..bridge.scene import InputError
 
 
@@ -13,7 +13,7 @@ class RS_ELASTIC_OT_solve_spacetime(jobs.JobOperator, bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def make_work(self, context):
-        inputs = spacetime_inputs.gather(context.active_object, context.scene)
+        inputs = spacetime_inputs.gather(scene.acted_on(context), context.scene)
         self._inputs = inputs
         return lambda job: spacetime_inputs.solve(inputs, job)
 

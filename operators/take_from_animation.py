@@ -13,7 +13,7 @@ class RS_ELASTIC_OT_take_from_animation(jobs.JobOperator, bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def make_work(self, context):
-        obj = scene.require_mesh_object(context.active_object)
+        obj = scene.require_mesh_object(scene.acted_on(context))
         return self._work_after(take.gather_take(context, obj))
 
     def _work_after(self, reading):

@@ -1,7 +1,7 @@
 """Tetrahedralise the active mesh with fTetWild and embed its vertices in the tets."""
 import bpy
 
-from ..bridge import bodies, jobs, stage_cache, tet_overlay
+from ..bridge import bodies, jobs, scene, stage_cache, tet_overlay
 
 
 class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
@@ -11,7 +11,7 @@ class RS_ELASTIC_OT_tetrahedralize(jobs.JobOperator, bpy.types.Operator):
     bl_options = {'REGISTER', 'UNDO'}
 
     def make_work(self, context):
-        inputs = bodies.read_inputs(context.active_object, context.evaluated_depsgraph_get(),
+        inputs = bodies.read_inputs(scene.acted_on(context), context.evaluated_depsgraph_get(),
                                     with_material=False)
         self._object_name = inputs.object_name
         self._key = inputs.tets_key

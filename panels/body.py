@@ -3,16 +3,14 @@ import textwrap
 
 import bpy
 
-from ..bridge import constraints, jobs, staleness
+from ..bridge import jobs, scene, staleness
 
 WRAP = 34      # characters: about 215 px of the UI font at the default sidebar width
 
 
 def body_object(context):
     """The body the panels show: the active mesh, or the mesh whose handle the active Empty is."""
-    obj = context.active_object
-    if obj is not None and obj.type == 'EMPTY':
-        return constraints.body_of_handle(obj, context.scene)
+    obj = scene.acted_on(context)
     return obj if obj is not None and obj.type == 'MESH' else None
 
 

@@ -145,3 +145,36 @@ def test_clear_bake_can_be_undone(ext):
     assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == []
     bpy.ops.ed.undo()
     assert ext.bridge.bake.bake_frames(bpy.data.objects["Bar"]) == [1, 2, 3]
+
+
+def test_with_a_handle_active_the_operators_act_on_its_body(ext):
+    """F3, a shortcut or a script with a handle's Empty active: the operators work on the body
+    the sidebar shows for it, as its buttons do, and leave the Empty's own settings alone; an
+    Empty that is no handle is refused in one line."""
+    from blender_helpers import add_tip_handle, make_active
+    from test_faults import refusal
+    obj = make_bar(cuts=3)
+    obj.rs_elastic.edge_length, obj.rs_elastic.num_modes = 0.1, 3
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 8
+    empty, _ = add_tip_handle(obj, {1: (4.0, 0.5, 0.5), 8: (4.0, 0.5, 1.0)})
+    make_active(empty)
+    untouched = {name: getattr(empty.rs_elastic, name)
+                 for name in ("youngs_modulus", "density", "tets_key", "prepared_key")}
+
+    assert bpy.ops.rs_elastic.apply_material_preset(preset="SILICONE") == {'FINISHED'}
+    assert (obj.rs_elastic.youngs_modulus, obj.rs_elastic.density) == (3.0e5, 1100.0)
+    assert bpy.ops.rs_elastic.prepare() == {'FINISHED'}
+    assert obj.rs_elastic.is_prepared
+    assert bpy.ops.rs_elastic.solve_spacetime() == {'FINISHED'}
+    assert ext.bridge.bake.bake_frames(obj) == list(range(1, 9))
+    assert bpy.ops.rs_elastic.simulate() == {'FINISHED'}
+    assert ext.bridge.bake.bake_frames(obj) == list(range(1, 9))
+    assert bpy.ops.rs_elastic.remove_handle() == {'FINISHED'}
+    assert len(obj.rs_elastic.handles) == 0
+    assert bpy.context.active_object == empty
+    assert {name: getattr(empty.rs_elastic, name) for name in untouched} == untouched
+
+    loose = bpy.data.objects.new("Loose", None)
+    bpy.context.scene.collection.objects.link(loose)
+    make_active(loose)
+    assert refusal(bpy.ops.rs_elastic.prepare) == "'Loose' is an empty, not a mesh"
