@@ -23,6 +23,12 @@ CANCEL_POLL = 0.01      # s between ticks once Esc was pressed: the operator end
 READ_POLL = 0.01        # s between ticks while a generator reads the scene on the main thread
 READ_BUDGET = 0.05      # s of that reading per tick (the window handles its events in between)
 RUNNING = {}            # {object name: Job} of the modal jobs running now (the panels' progress bars)
+# What a running job lets through to the window: looking around (orbit, pan and zoom a view,
+# scroll the sidebar) changes none of the user's data. Every other event (clicks, keys, and the
+# wheel with Ctrl or Alt, which change values and frames) waits for the job's end.
+NAVIGATION_EVENTS = frozenset({'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE', 'MIDDLEMOUSE', 'WHEELUPMOUSE',
+                               'WHEELDOWNMOUSE', 'TRACKPADPAN', 'TRACKPADZOOM', 'MOUSEROTATE',
+                               'MOUSESMARTZOOM', 'NDOF_MOTION'})
 
 
 class Cancelled(Exception):
@@ -104,6 +110,12 @@ class Job:
     @property
     def done(self):
         return self._thread is not None and not self._thread.is_alive()
+
+
+def looks_around(event):
+    """True for an event that only moves a view (``NAVIGATION_EVENTS`` without Ctrl, Alt or the
+    OS key)."""
+    return event.type in NAVIGATION_EVENTS and not (event.ctrl or event.alt or event.oskey)
 
 
 def running_job(obj):
@@ -255,7 +267,7 @@ class JobOperator:
         if job.reader is not None:          # still reading the scene (closed by a cancel)
             return self._read(context, event, job)
         if event.type != 'TIMER' and not job.done:
-            return {'RUNNING_MODAL'}
+            return {'PASS_THROUGH'} if looks_around(event) else {'RUNNING_MODAL'}
         if not job.done:
             self._show_progress(context, job)
             return {'RUNNING_MODAL'}
@@ -272,7 +284,7 @@ class JobOperator:
             self._cleanup(context)
             return self._fail(Cancelled())
         if event.type != 'TIMER':
-            return {'RUNNING_MODAL'}
+            return {'PASS_THROUGH'} if looks_around(event) else {'RUNNING_MODAL'}
         try:
             finished = job.read(READ_BUDGET)
         except Exception as exc:

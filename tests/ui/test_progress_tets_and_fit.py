@@ -5,7 +5,8 @@ changed. (Fit Material's panel, closed by default, is drawn by the test with the
 not seen in the sidebar.)"""
 from body_state import body_state
 from sidebar import drawn_panels
-from test_progress import QUICK_BAR, _check_bar, _wait_for_progress, _wait_until_ended
+from test_progress import (OPERATOR, QUICK_BAR, _check_bar, _operator, _wait_for_progress,
+                           _wait_until_ended)
 
 # A finer tet mesh than QUICK_BAR's (and than any other GUI test's, so the stage cache holds
 # none): fTetWild runs for seconds. While the test runs, the job waits after its progress
@@ -48,6 +49,7 @@ def _tetrahedralize_and_cancel(gui):
     assert ("RS_ELASTIC_PT_tet_mesh", "Bar") in drawn_panels(gui)
     gui.screenshot("progress")
     assert cut == [], cut
+    _look_around_while_it_runs(gui, "rs_elastic.tetrahedralize")
     gui.run("GATE.set()")
     gui.key("Escape")
     _wait_until_ended(gui, "rs_elastic.tetrahedralize")
@@ -57,6 +59,29 @@ def _tetrahedralize_and_cancel(gui):
     after = body_state(gui)
     assert {k: v for k, v in after.items() if k != "cache"} == \
         {k: v for k, v in before.items() if k != "cache"}
+
+
+VIEW_DISTANCE = "result = view3d()[1].spaces.active.region_3d.view_distance"
+SELECTED = "result = sorted(o.name for o in bpy.context.selected_objects)"
+
+
+def _look_around_while_it_runs(gui, idname):
+    """While the job runs, the wheel zooms the viewport (looking around changes nothing), and a
+    click on empty space, which would deselect the body, does not reach the scene."""
+    running = _operator(idname) + OPERATOR + "result = len(ops)"
+    selected, distance = gui.run(SELECTED), gui.run(VIEW_DISTANCE)
+    x, y = gui.point("view", 0.15, 0.8)
+    for _ in range(3):
+        gui.click(x, y, button=5)               # the wheel, down: zoom out
+    gui.settle(0.5, at=(x, y))
+    zoomed = gui.run(VIEW_DISTANCE)
+    assert zoomed > 1.2 * distance, (distance, zoomed)
+    gui.click(x, y)
+    gui.settle(0.5, at=(x, y))
+    assert gui.run(SELECTED) == selected == ["Bar"], selected
+    assert gui.run(running) == 1, f"{idname} ended before Esc"
+    print(f"\nWhile {idname} ran: the wheel zoomed the view from {distance:.2f} to "
+          f"{zoomed:.2f}; a click on empty space left {selected} selected")
 
 
 # A take of the bar bending up and down (a source copy of it whose shape key is keyed over 24
