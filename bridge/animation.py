@@ -8,8 +8,12 @@ The one place that knows how actions differ between versions, chosen by feature 
   `channelbag(slot, ensure=True)`, and `action.fcurves` is gone in 5.0.
 
 One function per need: `fcurves` (get or create the collection), `insert_keys`, `remove_fcurves`,
-and the readers `keyed_frames` and `keyframes`.
+and the readers `keyed_frames` and `keyframes`. The readers see the keys as the scene plays them:
+those of the active action, and those of the actions in the NLA strips that play, at the scene
+frames each strip puts them on (`strip_frames`).
 """
+import math
+
 import numpy as np
 
 
@@ -31,6 +35,15 @@ def fcurves(id_block, create=False):
             return None
         slot = action.slots.new(id_type=id_block.id_type, name=id_block.name)
         anim.action_slot = slot
+    return _slot_curves(action, slot, create)
+
+
+def _slot_curves(action, slot, create=False):
+    """The F-curves of `slot` in `action` (4.4+), or the action's own (4.2, 4.3), or None."""
+    if not hasattr(action, "layers"):
+        return action.fcurves
+    if slot is None:
+        return None
     bag = _channelbag(action, slot, create)
     return None if bag is None else bag.fcurves
 
@@ -85,25 +98,78 @@ def remove_fcurves(id_block, data_paths):
 
 
 def keyed_frames(id_block, data_path):
-    """Sorted integer frames that carry a keyframe on any channel of `data_path`."""
-    curves = fcurves(id_block)
-    if curves is None:
-        return []
-    frames = set()
-    for curve in curves:
-        if curve.data_path == data_path:
-            co = np.empty(len(curve.keyframe_points) * 2)
-            curve.keyframe_points.foreach_get("co", co)
-            frames.update(int(round(f)) for f in co[0::2])
-    return sorted(frames)
+    """Sorted integer scene frames that carry a keyframe on any channel of `data_path` (the
+    active action's and the playing NLA strips', ``keyed_points``)."""
+    return sorted({int(round(frame)) for frame, _ in keyed_points(id_block, data_path)})
 
 
 def keyframes(id_block, data_path, index=0):
-    """(k, 2) array of (frame, value) keyframes of one channel, or an empty array."""
-    curves = fcurves(id_block)
-    curve = None if curves is None else curves.find(data_path, index=index)
-    if curve is None:
-        return np.empty((0, 2))
-    co = np.empty(len(curve.keyframe_points) * 2)
-    curve.keyframe_points.foreach_get("co", co)
-    return co.reshape(-1, 2)
+    """(k, 2) array of (scene frame, value) keyframes of one channel, sorted by frame (the
+    active action's and the playing NLA strips', ``keyed_points``), or an empty array."""
+    points = sorted(keyed_points(id_block, data_path, index))
+    return np.array(points, dtype=np.float64).reshape(-1, 2)
+
+
+def keyed_points(id_block, data_path, index=None):
+    """[(scene frame, value)] of the keyframes on `data_path` (channel `index`, or every one):
+    the active action's where they are (outside the NLA's tweak mode, whose action is a
+    strip's), then each playing strip's action's at the frames ``strip_frames`` maps them to."""
+    anim = id_block.animation_data
+    if anim is None:
+        return []
+    points = []
+    if not anim.use_tweak_mode:
+        points += _curve_points(fcurves(id_block), data_path, index)
+    for strip in playing_strips(anim):
+        keys = _curve_points(_slot_curves(strip.action, getattr(strip, "action_slot", None)),
+                             data_path, index)
+        points += [(frame, value) for at, value in keys for frame in strip_frames(strip, at)]
+    return points
+
+
+def _curve_points(curves, data_path, index):
+    """[(frame, value)] of the keyframes of the curves on `data_path` (channel `index` or all)."""
+    points = []
+    for curve in () if curves is None else curves:
+        if curve.data_path == data_path and (index is None or curve.array_index == index):
+            co = np.empty(len(curve.keyframe_points) * 2)
+            curve.keyframe_points.foreach_get("co", co)
+            points += [(float(f), float(v)) for f, v in co.reshape(-1, 2)]
+    return points
+
+
+def playing_strips(anim):
+    """The action strips the NLA plays: unmuted strips (inside meta strips too) with an action,
+    on unmuted tracks, only the solo track's when one is soloed."""
+    tracks = [track for track in anim.nla_tracks if not track.mute]
+    if any(track.is_solo for track in tracks):
+        tracks = [track for track in tracks if track.is_solo]
+    pending = [strip for track in tracks for strip in track.strips]
+    strips = []
+    while pending:
+        strip = pending.pop(0)
+        if strip.mute:
+            continue
+        if strip.type == 'META':
+            pending += list(strip.strips)
+        elif strip.type == 'CLIP' and strip.action is not None:
+            strips.append(strip)
+    return strips
+
+
+def strip_frames(strip, action_frame):
+    """The scene frames on which an action strip plays its action's frame `action_frame`: once
+    per repeat, offset by the strip's start and stretched by its scale, counted from the
+    action's end when reversed (Blender's NLA time mapping), within the strip. A strip whose
+    time is animated maps its own way: every frame of its span is given instead."""
+    start, end = strip.frame_start, strip.frame_end
+    if strip.use_animated_time:
+        return [float(f) for f in range(math.ceil(start), math.floor(end) + 1)]
+    first, last, scale = strip.action_frame_start, strip.action_frame_end, abs(strip.scale)
+    if not first <= action_frame <= last or scale == 0.0:
+        return []
+    offset = (last - action_frame) if strip.use_reverse else (action_frame - first)
+    period = (last - first) * scale
+    count = max(1, math.ceil(strip.repeat - 1e-9)) if period > 0.0 else 1
+    frames = [start + offset * scale + r * period for r in range(count)]
+    return [f for f in frames if f <= end + 1e-6]

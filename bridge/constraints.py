@@ -59,7 +59,8 @@ def read_handles(obj, blender_scene, frames):
         turning = (_orientation_frames(empty, handle, wanted, frame_set)
                    if getattr(handle, "orientation", False) else [])
         if not wanted and not turning:
-            warnings.append(f"{label}: no location keys in the frame range; ignored")
+            warnings.append(f"{label}: no location keys in the frame range, so it is ignored "
+                            "(with Follow Every Frame on, it is followed wherever it goes)")
             continue
         plans.append((empty, indices, handle.weight, np.array(wanted, dtype=np.int64),
                       np.array(turning, dtype=np.int64)))

@@ -84,6 +84,66 @@ def test_keyed_empty_locations_become_targets_in_the_body_frame(ext):
     assert list(tracks[0].frames) == list(range(5, 15))
 
 
+def _evaluated_x(obj, frame):
+    bpy.context.scene.frame_set(frame)
+    return obj.matrix_world.translation.x
+
+
+def test_keys_in_nla_strips_count_on_the_frames_the_strips_play_them(ext):
+    """An Empty whose keys were pushed down to NLA strips: each key counts on every scene frame
+    where a playing strip plays it (start, scale, repeats, reversal), a muted track's never."""
+    obj = make_bar()
+    tip_group(obj)
+    bpy.ops.rs_elastic.add_handle(vertex_group="Tip")
+    empty = obj.rs_elastic.handles[0].empty
+    values = {1: 0.0, 5: 2.0, 11: 7.0}              # distinct: a frame's value names its key
+    for frame, x in values.items():
+        empty.location = (x, 0.5, 0.5)
+        empty.keyframe_insert("location", frame=frame)
+    anim = empty.animation_data
+    action = anim.action
+    stretched = anim.nla_tracks.new().strips.new("Stretched", 20, action)
+    stretched.scale, stretched.repeat = 2.0, 2.0     # plays 20-60: keys at 20, 28, 40 | 40, 48, 60
+    backwards = anim.nla_tracks.new().strips.new("Backwards", 100, action)
+    backwards.use_reverse = True                     # plays 100-110: key 11 at 100, 5 at 106, 1 at 110
+    muted = anim.nla_tracks.new()
+    muted.strips.new("Muted", 200, action)
+    muted.mute = True
+    anim.action = None
+    for strip in (stretched, backwards):
+        strip.extrapolation = 'NOTHING'              # no hold over the other strip's frames
+    tracks, warnings = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 251))
+    assert warnings == [] and len(tracks) == 1
+    assert list(tracks[0].frames) == [20, 28, 40, 48, 60, 100, 106, 110]
+    # Blender's own evaluation puts that key's value there (the next repeat's first key where
+    # two repeats meet), and each target is where the Empty is on its frame
+    played = [1, 5, 1, 5, 11, 11, 5, 1]
+    for frame, key, target in zip(tracks[0].frames, played, tracks[0].targets):
+        assert _evaluated_x(empty, int(frame)) == pytest.approx(values[key]), frame
+        np.testing.assert_allclose(target, np.array(obj.matrix_world.inverted()
+                                                     @ empty.matrix_world.translation), atol=1e-6)
+    bpy.context.scene.frame_set(1)
+
+
+def test_an_empty_without_keys_says_how_to_follow_it(ext):
+    obj = make_bar()
+    tip_group(obj)
+    bpy.ops.rs_elastic.add_handle(vertex_group="Tip")
+    handle = obj.rs_elastic.handles[0]
+    mover = bpy.data.objects.new("Mover", None)
+    bpy.context.scene.collection.objects.link(mover)
+    handle.empty.parent = mover                      # moved by its parent, not by its own keys
+    for frame, x in ((1, 0.0), (10, 1.0)):
+        mover.location = (x, 0.0, 0.0)
+        mover.keyframe_insert("location", frame=frame)
+    tracks, warnings = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 11))
+    assert tracks == [] and "Follow Every Frame" in warnings[0]
+    handle.follow = True
+    tracks, warnings = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 11))
+    assert warnings == [] and list(tracks[0].frames) == list(range(1, 11))
+    assert tracks[0].targets[-1] - tracks[0].targets[0] == pytest.approx([1.0, 0.0, 0.0])
+
+
 def test_a_deleted_empty_is_reported_and_ignored(ext):
     obj = make_bar()
     tip_group(obj)
@@ -107,6 +167,12 @@ def test_pose_keys_keyed_to_one_are_full_pose_constraints(ext):
     other.keyframe_insert("value", frame=30)
     assert ext.bridge.constraints.read_pose_keys(obj, range(1, 101)) == [(30, "Pose")]
     assert ext.bridge.constraints.read_pose_keys(obj, range(1, 25)) == []
+    # pushed down to an NLA strip that starts 50 frames later: the key plays on frame 80
+    anim = obj.data.shape_keys.animation_data
+    strip = anim.nla_tracks.new().strips.new("Later", 70, anim.action)
+    anim.action = None
+    assert strip.frame_start == 70 and strip.action_frame_start == 20
+    assert ext.bridge.constraints.read_pose_keys(obj, range(1, 101)) == [(80, "Pose")]
 
 
 def test_bake_take_and_clear_keep_the_users_keys_and_keyframes(ext):
