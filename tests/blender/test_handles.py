@@ -123,6 +123,9 @@ def test_keys_in_nla_strips_count_on_the_frames_the_strips_play_them(ext):
         np.testing.assert_allclose(target, np.array(obj.matrix_world.inverted()
                                                      @ empty.matrix_world.translation), atol=1e-6)
     bpy.context.scene.frame_set(1)
+    backwards.use_animated_time = True               # its own time curve: every frame it plays
+    tracks, _ = ext.bridge.constraints.read_handles(obj, bpy.context.scene, range(1, 251))
+    assert list(tracks[0].frames) == [20, 28, 40, 48, 60] + list(range(100, 111))
 
 
 def test_an_empty_without_keys_says_how_to_follow_it(ext):
