@@ -191,6 +191,9 @@ class VolumeBarrier:
         """
         m, s = self.num_coords, np.asarray(s, dtype=np.float64)
         near = self._screen.candidates(s)          # the other tets are surely inactive
+        if near is not None and len(near) == 0:    # every tet cleared: the common case
+            return 0.0, (np.zeros(m) if order >= 1 else None), (
+                np.zeros((m, m)) if order >= 2 else None)
         if near is None:                           # all tets, and a new reference
             strain = (self._flat @ s).reshape(-1, 6)
             J = stretch_determinants(strain, 0)[0]
@@ -503,14 +506,14 @@ class DeformedVolumes:
         """(E,) det F_e = deformed / rest signed volume at reduced coordinates q (rB,)."""
         if self._coordinate_basis is None:
             # rows coordinate-major (3 N, rB), so B q is (3, N), one contiguous row per
-            # coordinate for np.take (several times faster than fancy indexing of (N, 3) rows)
+            # coordinate for one np.take of every corner (several times faster than fancy
+            # indexing of (N, 3) rows)
             self._coordinate_basis = np.ascontiguousarray(
                 self.basis.reshape(len(self.rest), 3, -1).transpose(1, 0, 2),
                 dtype=self.dtype).reshape(self.basis.shape)
         u = (self._coordinate_basis @ np.asarray(q, dtype=self.dtype)).reshape(3, -1)
-        corner = self._corners
-        edges = ([self._rest_edges[k, i] + (np.take(u[i], corner[k + 1]) - np.take(u[i], corner[0]))
-                  for i in range(3)] for k in range(3))
+        corners = np.take(u, self._corners, axis=1)          # (3, 4, E): [coordinate, corner]
+        edges = self._rest_edges + (corners[:, 1:] - corners[:, :1]).transpose(1, 0, 2)
         return _column_determinants(*edges) / self.rest_determinants
 
 
