@@ -37,24 +37,25 @@ Choices written down here:
   one step. Each trial adds a second-order correction for the handles' curvature (see
   ``_gauss_newton_step``). Steps are accepted only if the true objective does not increase.
 - **Elimination**: handles usually sit on a few frames, and every other frame enters J only
-  through the quadratic E_f + E_k. So with the start held and at most ``ELIMINATE_LIMIT``
-  unknowns on the handles' free frames, each Z block factors that quadratic part's banded
-  Hessian A once and keeps A^-1 on the handles' frames (``_Elimination``); a GN step is then a
-  dense solve of that size plus one banded back-substitution, the same step as the banded
-  system's (same objective, same iterates up to round-off and the Marquardt damping, which acts
-  on the handles' unknowns only). A step's cost no longer grows with the frames beyond
-  O(F r) vector work, so the default step limit is ``ELIMINATED_STEPS`` instead of
-  ``GN_STEPS``, and such a run stops when the undamped GN model promises a decrease of at most
-  ``tolerance`` J (g^T H^-1 g / 2, a stationarity measure) rather than when J's own decrease
-  is that small: where GN converges linearly the latter stopped the 400-frame bench edit with
-  6e-7 J still promised. Why: the penalised handles make a narrow curved valley in which GN
-  converges linearly (measured on the bench bar, 20 modes, 5 handles keyed on 2 frames, old
-  stopping rule: 34 steps at 200 frames, 70 at 400, 45 at 800, the count set by the edit, not
-  the length); with the banded system each step cost O(F r^3) and 400 frames ran out of the
-  50 steps. An exact Newton Hessian (the handles' curvature by differences of their
-  Jacobians) was tried and did not pay: its model holds only within ~0.1 of the step in that
-  valley, 35 instead of 70 steps at 400 frames for 2r extra Jacobians per handle frame and
-  step.
+  through the quadratic E_f + E_k. So with the start held and at most ``ELIMINATE_LIMIT`` unknowns
+  on the handles' free frames, each Z block factors that quadratic part's banded Hessian A once
+  and keeps A^-1 on the handles' frames (``_Elimination``); a GN step is then a dense solve of
+  that size plus one banded back-substitution. Unless pose keys couple the modes of a frame, A
+  couples each mode only with itself and is factored mode by mode with bandwidth 2
+  (``_BandFactor``: the 800-frame bench edit with material, 18 Z blocks, went from 1.84 to
+  0.84-1.09 s). The step is the banded system's own (same objective, same iterates up to round-off
+  and the Marquardt damping, which acts on the handles' unknowns only). A step's cost no longer
+  grows with the frames beyond O(F r) vector work, so the default step limit is
+  ``ELIMINATED_STEPS`` instead of ``GN_STEPS``, and such a run stops when the undamped GN model
+  promises a decrease of at most ``tolerance`` J (g^T H^-1 g / 2, a stationarity measure) rather
+  than when J's own decrease is that small: where GN converges linearly the latter stopped the
+  400-frame bench edit with 6e-7 J still promised. Why: the penalised handles make a narrow curved
+  valley in which GN converges linearly (measured on the bench bar, 20 modes, 5 handles keyed on 2
+  frames, old stopping rule: 34 steps at 200 frames, 70 at 400, 45 at 800, the count set by the
+  edit, not the length); with the banded system each step cost O(F r^3) and 400 frames ran out of
+  the 50 steps. An exact Newton Hessian (the handles' curvature by differences of their Jacobians)
+  was tried and did not pay: its model holds only within ~0.1 of the step in that valley, 35
+  instead of 70 steps at 400 frames for 2r extra Jacobians per handle frame and step.
 - **Penalty continuation**: with stiff handles (gamma far above the dynamics) the first GN step
   from rest solves the *linearised* constraints exactly, which for a large edit is a huge
   linear-modal pose; RS then lands in a poor basin (measured: a 5-handle 90 deg bend stalled
@@ -652,6 +653,60 @@ def _assemble_band(problem, eigenvalues, damping, blocks):
     return ab
 
 
+class _BandFactor:
+    """The Cholesky factor of a banded SPD matrix A (n, n) given in ``_assemble_band``'s lower
+    form ab (2r + 1, n), unknowns frame-major (frame i, mode k at i r + k).
+
+    E_f couples each mode only with itself on the next two frames (its bands at offsets r and
+    2r). Unless a frame's block couples its modes (a pose key's), A is therefore r independent
+    systems of bandwidth 2, which in mode-major order are factored and solved with bandwidth 2
+    instead of 2r (n 2^2 instead of n (2r)^2 for the factor, 4 n instead of 4 n r per solve).
+    Otherwise the frame-major band is factored as it is."""
+
+    def __init__(self, ab, r):
+        self.r, self.n = r, ab.shape[1]
+        mode_bands = [0, r, 2 * r]
+        self.by_mode = not np.delete(ab, mode_bands, axis=0).any()
+        if self.by_mode:                       # ab[r d, i r + k] -> row d, column k nf + i
+            ab = np.ascontiguousarray(ab[mode_bands].reshape(3, -1, r).transpose(0, 2, 1)
+                                      ).reshape(3, -1)
+        self.factor = (scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False), True)
+
+    def frame_columns(self, frames):
+        """(apply, block) for the columns X = A^-1 E (n, u r) of every unknown on ``frames``
+        (u,) (column j r + k: mode k on frames[j]): apply(w (u r,)) = X w (n,), and block =
+        X's rows on those unknowns (u r, u r). Mode by mode, X is zero off its column's mode:
+        its nonzero part is u solves (one unit right-hand side per frame serves every mode's
+        independent block) and X w costs n u instead of n u r."""
+        r, frames = self.r, np.asarray(frames)
+        u, nf = len(frames), self.n // r
+        columns = (frames[:, None] * r + np.arange(r)).reshape(-1)
+        if not self.by_mode:
+            picks = np.zeros((self.n, u * r))
+            picks[columns, np.arange(u * r)] = 1.0
+            X = self.solve(picks)
+            return (lambda w: X @ w), X[columns]
+        units = np.zeros((r, nf, u))
+        units[:, frames, np.arange(u)] = 1.0
+        by_mode = scipy.linalg.cho_solve_banded(self.factor, units.reshape(-1, u),
+                                                check_finite=False).reshape(r, nf, u)
+        block = np.zeros((u, r, u, r))            # zero between different modes
+        modes = np.arange(r)
+        block[:, modes, :, modes] = by_mode[:, frames, :]                   # [k, j, j']
+        return (lambda w: np.einsum("kij,jk->ik", by_mode, w.reshape(u, r)).reshape(-1),
+                block.reshape(u * r, u * r))
+
+    def solve(self, b):
+        """A^-1 b for b (n,) or (n, k), frame-major rows."""
+        if not self.by_mode:
+            return scipy.linalg.cho_solve_banded(self.factor, b, check_finite=False)
+        tail = b.shape[1:]
+        by_mode = b.reshape((-1, self.r) + tail).swapaxes(0, 1).reshape(b.shape)
+        x = scipy.linalg.cho_solve_banded(self.factor, by_mode, check_finite=False)
+        return np.ascontiguousarray(x.reshape((self.r, -1) + tail).swapaxes(0, 1)).reshape(
+            b.shape)
+
+
 class _Elimination:
     """The frames no handle touches, eliminated once per Z block (module doc, "Elimination").
 
@@ -672,19 +727,18 @@ class _Elimination:
         Z = np.zeros((problem.frames, r))
         blocks = _quadratic_terms(problem, Z, eigenvalues, damping, S)[1]
         A = _assemble_band(problem, eigenvalues, damping, blocks[s:])
-        self.factor = (scipy.linalg.cholesky_banded(A, lower=True, check_finite=False), True)
+        factor = _BandFactor(A, r)
+        self.solve = factor.solve                                 # A^-1 of (n,) or (n, k)
         self.columns = ((self.frames - s)[:, None] * r + np.arange(r)).reshape(-1)
-        picks = np.zeros((A.shape[1], len(self.columns)))
-        picks[self.columns, np.arange(len(self.columns))] = 1.0
-        self.X = scipy.linalg.cho_solve_banded(self.factor, picks, check_finite=False)
-        inverse = 0.5 * (self.X[self.columns] + self.X[self.columns].T)   # (A^-1)_cc
+        self._apply_X, inverse = factor.frame_columns(self.frames - s)       # X, (A^-1)_cc
+        inverse = 0.5 * (inverse + inverse.T)
         self.K = scipy.linalg.cho_solve(scipy.linalg.cho_factor(inverse), np.eye(len(inverse)))
         self.K = 0.5 * (self.K + self.K.T)
 
     def expand(self, v):
         """(n,) step on every free frame of a handle-frame part v (u r,) of a model with no
         quadratic gradient: X K v."""
-        return self.X @ (self.K @ v)
+        return self._apply_X(self.K @ v)
 
 
 def _elimination(state):
@@ -713,8 +767,7 @@ def _eliminated_step(state, tolerance, elimination):
     grad, _ = _quadratic_terms(problem, state.Z, state.eigenvalues, state.damping, state.S)
     res, Jz, handle_grad, handle_blocks = _handle_system(problem, state.Z, state.S)
     frames = elimination.frames
-    free = scipy.linalg.cho_solve_banded(elimination.factor, grad[s:].reshape(-1),
-                                         check_finite=False)                 # A^-1 g_q
+    free = elimination.solve(grad[s:].reshape(-1))                          # A^-1 g_q
     H = elimination.K + scipy.linalg.block_diag(*handle_blocks[frames])
     rhs = -elimination.K @ free[elimination.columns] - handle_grad[frames].reshape(-1)
 

@@ -105,7 +105,7 @@ def test_keys_in_nla_strips_count_on_the_frames_the_strips_play_them(ext):
     stretched = anim.nla_tracks.new().strips.new("Stretched", 20, action)
     stretched.scale, stretched.repeat = 2.0, 2.0     # plays 20-60: keys at 20, 28, 40 | 40, 48, 60
     backwards = anim.nla_tracks.new().strips.new("Backwards", 100, action)
-    backwards.use_reverse = True                     # plays 100-110: key 11 at 100, 5 at 106, 1 at 110
+    backwards.use_reverse = True                     # plays 100-110: keys 11, 5, 1 at 100, 106, 110
     muted = anim.nla_tracks.new()
     muted.strips.new("Muted", 200, action)
     muted.mute = True

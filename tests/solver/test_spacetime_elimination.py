@@ -119,3 +119,31 @@ def test_long_edits_converge_to_a_stationary_point(frames):
     control = st.dynamics_residual(result.Z, problem.eigenvalues, problem.damping, problem.h,
                                    problem.scheme, problem.external_forces)
     assert np.abs(control[round(0.6 * frames):]).max() <= 1e-6 * np.abs(control).max()
+
+
+@pytest.mark.parametrize("coupled", [False, True])
+def test_band_factor_solves_and_its_frame_columns_match_the_dense_inverse(coupled):
+    """``_BandFactor`` against the dense inverse: mode by mode when only E_f's bands (offsets
+    0, r, 2r) are set, frame-major when a frame's block couples its modes."""
+    problem = edit(40, r=3, keyframes=False)
+    r, s = problem.num_modes, problem.first_free
+    blocks = np.zeros((problem.frames - s, r, r))
+    if coupled:                                      # a pose key's block: every mode of frame 9
+        rows = np.random.default_rng(5).normal(size=(4, r))
+        blocks[9] = rows.T @ rows
+    ab = st._assemble_band(problem, problem.eigenvalues, problem.damping, blocks)
+    factor = st._BandFactor(ab, r)
+    assert factor.by_mode is not coupled
+    inverse = np.linalg.inv(dense_from_band(ab))
+    b = np.random.default_rng(6).normal(size=(ab.shape[1], 2))
+    np.testing.assert_allclose(factor.solve(b), inverse @ b, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(factor.solve(b[:, 0]), inverse @ b[:, 0], rtol=1e-10, atol=0)
+    frames = np.array([5, 20])
+    columns = (frames[:, None] * r + np.arange(r)).reshape(-1)
+    apply, block = factor.frame_columns(frames)
+    w = np.random.default_rng(7).normal(size=len(columns))
+    scale = np.abs(inverse).max()
+    np.testing.assert_allclose(apply(w), inverse[:, columns] @ w, rtol=0,
+                               atol=1e-12 * scale * np.abs(w).sum())
+    np.testing.assert_allclose(block, inverse[np.ix_(columns, columns)], rtol=0,
+                               atol=1e-12 * scale)
