@@ -11,12 +11,17 @@ Reading the scene can itself take long (a take read frame by frame). Such an ope
 and returns `work`. In the UI its pieces run on the timer's ticks, `READ_BUDGET` seconds at a
 time, so the window stays responsive, shows the progress and hears Esc, which closes the
 generator (its `finally` puts the scene back); in background mode it runs to its end at once.
+
+While a work runs, numpy's BLAS runs on one thread (`solver.threads.one_blas_thread`): the
+solver's work is its own threads or many small products, which BLAS threads slow down.
 """
 import inspect
 import threading
 import time
 
 import bpy
+
+from ..solver import threads
 
 POLL = 0.1              # s between the modal operator's timer ticks while a job runs
 CANCEL_POLL = 0.01      # s between ticks once Esc was pressed: the operator ends right after the work
@@ -87,7 +92,8 @@ class Job:
         """Run synchronously (the reading too); exceptions propagate."""
         if self.reader is not None:
             self.read()
-        self.result = self._work(self)
+        with threads.one_blas_thread():
+            self.result = self._work(self)
         return self.result
 
     def start(self):
@@ -96,7 +102,8 @@ class Job:
 
     def _run_caught(self):
         try:
-            self.result = self._work(self)
+            with threads.one_blas_thread():
+                self.result = self._work(self)
         except BaseException as exc:  # handed to the main thread, which reports it
             self.error = exc
 

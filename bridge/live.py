@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from ..solver import spacetime
+from ..solver import spacetime, threads
 from . import bake, preview, scene, spacetime_inputs, transforms
 from .scene import InputError
 
@@ -74,11 +74,12 @@ def _solve(job):
     # (scaled by another density, or other modes).
     warm = (previous is not None and previous.body is job.body and previous.Z.shape == shape
             and previous.frames == job.frames)
-    if warm:
-        result = spacetime.solve(job.problem, iterations=LIVE_GN_STEPS, initial=previous.Z,
-                                 continuation=False)
-    else:
-        result = spacetime.solve(job.problem, iterations=job.iterations)
+    with threads.one_blas_thread():             # as every job's work (``jobs``)
+        if warm:
+            result = spacetime.solve(job.problem, iterations=LIVE_GN_STEPS, initial=previous.Z,
+                                     continuation=False)
+        else:
+            result = spacetime.solve(job.problem, iterations=job.iterations)
     how = "warm" if warm else "cold"
     status = (f"Live: {how} re-solve, {result.iterations} steps, largest handle miss "
               f"{float(result.handle_residuals.max(initial=0.0)):.2g}")

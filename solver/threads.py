@@ -11,9 +11,21 @@ Results come back in input order, so the outcome does not depend on scheduling.
 matrices of bases): BLAS runs on one thread while the stage's own threads use the cores, so
 they split the rows into fixed blocks of ROW_BLOCK and run one product per block. Blocks are
 fixed, not one per thread, so the result is the same whatever the number of threads.
+
+``one_blas_thread`` makes that so inside Blender too, where numpy's OpenBLAS otherwise runs on
+every core: while it is entered numpy's BLAS runs on one thread. The work of the reduced stage,
+a simulation and a space-time solve is our own threads or many small products, and BLAS
+threads taking turns with them or waking for each small product lost several-fold on a busy
+machine (the 800-frame space-time bench edit with material: 1.5-2.0 s on two BLAS threads
+against 0.7-1.0 s on one, in one process while another process kept one core busy). scipy's
+own OpenBLAS (the modes' supernodal factorisation: large dense blocks) keeps its threads.
 """
 
+import contextlib
+import ctypes
+import glob
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -90,3 +102,65 @@ def inner(A, B, weights=None):
     for partial in parts[1:]:
         total += partial
     return total
+
+
+# numpy's bundled OpenBLAS: its thread-count functions, by the symbol names the wheels have used
+# (numpy 2: scipy-openblas with a 64-bit suffix; numpy 1.26, Blender 4.2-4.5: openblas64_).
+_BLAS_SYMBOLS = (("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+                 ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+                 ("openblas_set_num_threads", "openblas_get_num_threads"))
+_blas_lock = threading.Lock()
+_blas_state = {"depth": 0, "restore": None}
+_blas_controls = []                       # [(set, get)] once found; [None] where there is none
+
+
+def numpy_blas_controls():
+    """(set_num_threads, get_num_threads) of the OpenBLAS numpy was built with, found next to
+    numpy (numpy.libs on Linux and Windows, numpy/.dylibs on macOS x86_64), or None (e.g.
+    Accelerate on macOS arm64, which needs no limit). Loading the library again by its path
+    gives the copy numpy already loaded."""
+    if not _blas_controls:
+        _blas_controls.append(_find_blas_controls())
+    return _blas_controls[0]
+
+
+def _find_blas_controls():
+    import numpy
+    package = os.path.dirname(numpy.__file__)
+    for path in sorted(glob.glob(os.path.join(package + ".libs", "*openblas*"))
+                       + glob.glob(os.path.join(package, ".dylibs", "*openblas*"))):
+        try:
+            library = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for set_name, get_name in _BLAS_SYMBOLS:
+            if hasattr(library, set_name) and hasattr(library, get_name):
+                set_threads, get_threads = getattr(library, set_name), getattr(library, get_name)
+                set_threads.argtypes, set_threads.restype = [ctypes.c_int], None
+                get_threads.argtypes, get_threads.restype = [], ctypes.c_int
+                return set_threads, get_threads
+    return None
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """Run numpy's BLAS on one thread inside the block (module docstring), then give it back
+    the count it had. Nested and concurrent blocks share one limit: the first to enter sets
+    it, the last to leave restores. Without a controllable OpenBLAS it does nothing."""
+    controls = numpy_blas_controls()
+    if controls is None:
+        yield
+        return
+    set_threads, get_threads = controls
+    with _blas_lock:
+        if _blas_state["depth"] == 0:
+            _blas_state["restore"] = get_threads()
+            set_threads(1)
+        _blas_state["depth"] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_state["depth"] -= 1
+            if _blas_state["depth"] == 0:
+                set_threads(_blas_state["restore"])

@@ -248,3 +248,36 @@ def test_a_scaled_body_is_simulated_with_one_readable_warning(ext, capfd):
     assert warnings == ["Warning: 'Bar' is scaled by (1.2, 1, 1.1): the simulation treats its "
                         "object space as metres"]
     assert ext.bridge.bake.bake_frames(obj) == [1, 2, 3]
+
+
+def test_a_job_runs_numpy_blas_on_one_thread_and_gives_back_the_count(ext):
+    """While a job's work runs (on its thread or here), numpy's BLAS has one thread; after it,
+    also after an error or a second job nested in time, the count it had."""
+    import time
+    controls = ext.solver.threads.numpy_blas_controls()
+    if controls is None:
+        pytest.skip("numpy here has no OpenBLAS whose threads can be set (e.g. Accelerate)")
+    set_threads, get_threads = controls
+    set_threads(2)
+    seen = []
+
+    def work(job):
+        seen.append(get_threads())
+        return "done"
+
+    def failing(job):
+        seen.append(get_threads())
+        raise ValueError("bad input")
+
+    Job = ext.bridge.jobs.Job
+    assert Job(work).run_here() == "done" and get_threads() == 2
+    with pytest.raises(ValueError):
+        Job(failing).run_here()
+    assert get_threads() == 2
+    slow = Job(lambda job: time.sleep(0.2) or seen.append(get_threads()))
+    slow.start()
+    quick = Job(work)
+    quick.start()
+    while not (slow.done and quick.done):
+        time.sleep(0.01)
+    assert quick.result == "done" and seen == [1, 1, 1, 1] and get_threads() == 2
