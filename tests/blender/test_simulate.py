@@ -1,4 +1,6 @@
 """Simulation end to end in the installed extension, and its command line."""
+import time
+
 import numpy as np
 import pytest
 import bpy
@@ -253,12 +255,19 @@ def test_a_scaled_body_is_simulated_with_one_readable_warning(ext, capfd):
 def test_a_job_runs_numpy_blas_on_one_thread_and_gives_back_the_count(ext):
     """While a job's work runs (on its thread or here), numpy's BLAS has one thread; after it,
     also after an error or a second job nested in time, the count it had."""
-    import time
     controls = ext.solver.threads.numpy_blas_controls()
     if controls is None:
         pytest.skip("numpy here has no OpenBLAS whose threads can be set (e.g. Accelerate)")
     set_threads, get_threads = controls
+    original = get_threads()
     set_threads(2)
+    try:
+        _check_jobs_blas(ext, get_threads)
+    finally:
+        set_threads(original)
+
+
+def _check_jobs_blas(ext, get_threads):
     seen = []
 
     def work(job):
