@@ -92,9 +92,13 @@ class Job:
         """Run synchronously (the reading too); exceptions propagate."""
         if self.reader is not None:
             self.read()
-        with threads.one_blas_thread():
-            self.result = self._work(self)
+        self.result = self._run_work()
         return self.result
+
+    def _run_work(self):
+        """The work's result, with numpy's BLAS on one thread while it runs (module docstring)."""
+        with threads.one_blas_thread():
+            return self._work(self)
 
     def start(self):
         self._thread = threading.Thread(target=self._run_caught, daemon=True)
@@ -102,8 +106,7 @@ class Job:
 
     def _run_caught(self):
         try:
-            with threads.one_blas_thread():
-                self.result = self._work(self)
+            self.result = self._run_work()
         except BaseException as exc:  # handed to the main thread, which reports it
             self.error = exc
 

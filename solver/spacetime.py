@@ -653,6 +653,12 @@ def _assemble_band(problem, eigenvalues, damping, blocks):
     return ab
 
 
+def _frame_unknowns(frames, r):
+    """(u r,) frame-major indices of every mode's unknown on frames (u,): j r + k for mode k
+    on frames[j]."""
+    return (np.asarray(frames)[:, None] * r + np.arange(r)).reshape(-1)
+
+
 class _BandFactor:
     """The Cholesky factor of a banded SPD matrix A (n, n) given in ``_assemble_band``'s lower
     form ab (2r + 1, n), unknowns frame-major (frame i, mode k at i r + k).
@@ -680,7 +686,7 @@ class _BandFactor:
         independent block) and X w costs n u instead of n u r."""
         r, frames = self.r, np.asarray(frames)
         u, nf = len(frames), self.n // r
-        columns = (frames[:, None] * r + np.arange(r)).reshape(-1)
+        columns = _frame_unknowns(frames, r)
         if not self.by_mode:
             picks = np.zeros((self.n, u * r))
             picks[columns, np.arange(u * r)] = 1.0
@@ -729,7 +735,7 @@ class _Elimination:
         A = _assemble_band(problem, eigenvalues, damping, blocks[s:])
         factor = _BandFactor(A, r)
         self.solve = factor.solve                                 # A^-1 of (n,) or (n, k)
-        self.columns = ((self.frames - s)[:, None] * r + np.arange(r)).reshape(-1)
+        self.columns = _frame_unknowns(self.frames - s, r)
         self._apply_X, inverse = factor.frame_columns(self.frames - s)       # X, (A^-1)_cc
         inverse = 0.5 * (inverse + inverse.T)
         self.K = scipy.linalg.cho_solve(scipy.linalg.cho_factor(inverse), np.eye(len(inverse)))
