@@ -15,7 +15,8 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
         obj = drawn_body(self.layout, context)
         settings = obj.rs_elastic
         layout = self.layout
-        layout.prop(settings, "take_source")
+        layout.label(text="Take Source:")      # beside its field it showed as "Take So…"
+        layout.prop(settings, "take_source", text="")
         layout.operator("rs_elastic.take_from_animation", icon='IMPORT')
         draw_progress(layout, obj, "rs_elastic.take_from_animation")
         row = layout.row(align=True)
@@ -33,14 +34,37 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
 
 
 def draw_fitted(layout, fitted):
-    """Per mode: the prepared and the fitted frequency [Hz] and damping [1/s]; the residual."""
-    layout.label(text=f"Fit of frames {fitted.first_frame}–{fitted.last_frame}: residual "
-                      f"{fitted.residual:.3g} m (worst frame {fitted.worst_frame})"
-                      + ("" if fitted.converged else ", not converged"))
-    layout.label(text="Mode: frequency prepared → fitted, damping prepared → fitted")
+    """The fit's frames and residual [m], then per mode the prepared and the fitted frequency
+    [Hz] and damping [1/s], in columns narrow enough for the sidebar at its default width."""
+    for name, value in (("Frames", f"{fitted.first_frame}–{fitted.last_frame}"),
+                        ("Residual", f"{fitted.residual:.3g} m"),
+                        ("Worst frame", f"{fitted.worst_frame}")):
+        _columns(layout, FACT_SPLIT, name, value)
+    if not fitted.converged:
+        layout.label(text="The fit did not converge", icon='ERROR')
+    layout.label(text="Per mode, prepared → fitted:")
+    _columns(layout, MODE_SPLIT, "", "Frequency, Hz", "Damping, 1/s")
     for k, (f0, f1, d0, d1) in enumerate(zip(fitted.prepared_frequencies, fitted.frequencies,
                                              fitted.prepared_damping, fitted.damping)):
-        layout.label(text=f"{k + 1}: {f0:.3f} → {f1:.3f} Hz, {d0:.3f} → {d1:.3f} /s")
+        _columns(layout, MODE_SPLIT, f"{k + 1}", f"{_short(f0)} → {_short(f1)}",
+                 f"{_short(d0)} → {_short(d1)}")
+
+
+FACT_SPLIT = 0.4     # width of a fact's name; its value takes the rest
+MODE_SPLIT = 0.14    # width of the mode number; frequency and damping share the rest
+
+
+def _columns(layout, factor, *texts):
+    """One row of labels: the first ``factor`` of the width, the others share the rest (the
+    same split on every row, so the columns line up)."""
+    split = layout.split(factor=factor)
+    for text in texts:
+        split.label(text=text)
+
+
+def _short(value):
+    """Three significant digits, whole numbers from 100 up (1234, not 1.23e+03)."""
+    return f"{value:.0f}" if abs(value) >= 100.0 else f"{value:.3g}"
 
 
 CLASSES = (RS_ELASTIC_PT_take,)

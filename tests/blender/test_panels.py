@@ -57,6 +57,22 @@ def draw_all():
     return [item for log in draw_each().values() for item in log]
 
 
+def fitted_table(shown):
+    """What the Take panel shows of a fitted material, read back from the labels it recorded
+    (``draw_each()["RS_ELASTIC_PT_take"]``): ({'Frames': .., 'Residual': .., 'Worst frame':
+    ..}, [(mode number, (prepared, fitted) Hz, (prepared, fitted) 1/s), ...])."""
+    labels = [text for kind, text in shown if kind == "label"]
+    start = labels.index("Frames")
+    facts = dict(zip(labels[start:start + 6:2], labels[start + 1:start + 6:2]))
+    cells = labels[labels.index("Damping, 1/s") + 1:]
+
+    def pair(cell):                                     # 'a → b'
+        return tuple(float(x) for x in cell.split(" → "))
+    rows = [(number, pair(hz), pair(damping))
+            for number, hz, damping in zip(cells[::3], cells[1::3], cells[2::3])]
+    return facts, rows
+
+
 def draw_each(layout=RecordingLayout):
     """{panel class name: what it recorded} of every registered RS Elastic panel whose poll
     passes (an import of the source tree under another package name leaves unregistered

@@ -16,7 +16,7 @@ import bpy
 
 from blender_helpers import diagonal, make_bar, vertices
 from test_faults import refusal
-from test_panels import draw_all
+from test_panels import draw_each, fitted_table
 
 ROOT_YOUNGS, UNIFORM_YOUNGS, RATIO, POISSON, DENSITY = 3.0e6, 2.0e6, 1.0 / 3.0, 0.3, 1000.0
 RAYLEIGH, FPS, KEYED, FRAMES = (0.05, 0.002), 30, 150, 300
@@ -146,12 +146,15 @@ def test_a_take_from_a_mesh_cache_fits_and_continues_closer_than_the_uniform_mat
     assert (simulated.damping_mass, simulated.damping_stiffness) == \
         ext.solver.take.fitted_rayleigh(fitted)
 
-    shown = draw_all()                                   # the panel: prepared vs fitted
-    assert ("label", f"1: {fitted.prepared_frequencies[0]:.3f} → {fitted.frequencies[0]:.3f} Hz, "
-                     f"{fitted.prepared_damping[0]:.3f} → {fitted.damping[0]:.3f} /s") in shown
+    shown = draw_each()["RS_ELASTIC_PT_take"]            # the panel: prepared vs fitted
+    facts, rows = fitted_table(shown)
+    assert rows[0][0] == "1"
+    np.testing.assert_allclose(rows[0][1], (fitted.prepared_frequencies[0],
+                                            fitted.frequencies[0]), rtol=5e-3)
+    np.testing.assert_allclose(rows[0][2], (fitted.prepared_damping[0], fitted.damping[0]),
+                               rtol=5e-3, atol=5e-4)
     assert ("operator", "rs_elastic.continue_motion") in shown
-    assert any(kind == "label" and f"residual {fitted.residual:.3g} m" in text
-               for kind, text in shown)
+    assert facts["Residual"] == f"{fitted.residual:.3g} m"
 
     blend = tmp_path / "take.blend"                      # the fitted material is in the .blend
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))

@@ -11,14 +11,14 @@ import numpy as np
 import bpy
 
 from blender_helpers import make_active
-from test_panels import draw_all
+from test_panels import draw_all, draw_each, fitted_table
 from test_take_sources import body, copy_of, hooked, prepared_file  # noqa: F401 (fixtures)
 
 
 def fitted_lines():
-    """What the take panel shows of the fitted material (its residual and per-mode lines)."""
+    """What the take panel shows of the fitted material (its residual and per-mode values)."""
     return [text for kind, text in draw_all()
-            if kind == "label" and ("Hz," in text or text.startswith("Fit of frames"))]
+            if kind == "label" and ("→" in text or text.endswith(" m"))]
 
 
 def state(ext):
@@ -66,6 +66,28 @@ def test_undo_brings_back_the_previous_fit_then_the_previous_take(ext, body):
     np.testing.assert_array_equal(take, take_a)
     np.testing.assert_array_equal(fit.eigenvalues, fit_a.eigenvalues)
     assert lines == lines_a
+
+
+def test_the_take_panel_shows_each_modes_prepared_and_fitted_values(ext, body):
+    """The fitted material as the Take panel draws it, read back from its labels: the frames,
+    the residual and, per mode in order, the prepared and fitted frequency [Hz] and damping
+    [1/s] agree with the fitted material's own arrays to the three digits shown."""
+    source = copy_of(body)
+    hooked(source)
+    body.rs_elastic.take_source = source
+    make_active(body)
+    assert bpy.ops.rs_elastic.take_from_animation() == {'FINISHED'}
+    assert bpy.ops.rs_elastic.fit_material() == {'FINISHED'}
+    fit = ext.bridge.take.fitted_material(body)
+    facts, rows = fitted_table(draw_each()["RS_ELASTIC_PT_take"])
+    assert facts == {"Frames": f"{fit.first_frame}–{fit.last_frame}",
+                     "Residual": f"{fit.residual:.3g} m", "Worst frame": f"{fit.worst_frame}"}
+    assert [number for number, _, _ in rows] == [str(k + 1) for k in range(len(fit.frequencies))]
+    for k, (_, frequency, damping) in enumerate(rows):
+        np.testing.assert_allclose(frequency, (fit.prepared_frequencies[k], fit.frequencies[k]),
+                                   rtol=5e-3, atol=5e-4)
+        np.testing.assert_allclose(damping, (fit.prepared_damping[k], fit.damping[k]),
+                                   rtol=5e-3, atol=5e-4)
 
 
 def test_a_fit_cancelled_on_its_worker_thread_keeps_nothing(ext, body):

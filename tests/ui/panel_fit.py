@@ -8,13 +8,15 @@ size: the widget style's points times the preferences' ui_scale):
 - the panels' content width is the sidebar region's width less 2.65 widget units (the tab column
   and the panel borders); a column gives each child its full width; a row gives each item its
   natural width (text, icon, margins) scaled together to fill the row, as Blender's row does;
-- with use_property_split a property's label gets 0.4 of its width less the decorator's unit
+- a split gives its first child `factor` of its width and the others even shares of the rest
+  (Blender's split); with use_property_split a property's label gets 0.4 of its width less the decorator's unit
   (Blender's UI_ITEM_PROP_SEP_DIVIDE), the value 0.6; a checkbox's text sits after its box in
   the value part, an expanded enum's items share the value part;
 - a text needs its icon's unit and 0.3 unit of margin each side (0.15 unit in the split's label
   column, right-aligned against the value; 0.15 each side in an expanded enum's buttons); a
-  number field without the split holds 'Name: value' (seven digits assumed); a label beside a
-  search field without the split gets a third of the width.
+  number field without the split holds 'Name: value' (seven digits assumed); a text, search or
+  object field without the split puts 'Name:' before it in a slot of 8/3 units whatever the
+  width (55.5 px here: the window showed 'Empty:' and 'Group:' whole, 'Take So…' cut).
 The constants were read off Blender 4.3's sidebar at its default width (291 px at ui_scale 1.04):
 with them, 'Poisson's Ratio' (82 px) fits and 'Proxy Triangles' (83 px) does not, as the window
 shows ('Proxy Triangl…'). Deterministic: no pixels are compared, only font metrics and widths.
@@ -33,7 +35,7 @@ def _text_width(text):
 
 
 class _Node:
-    """A recorded layout: its kind ('row' or 'column'), its split setting and its children
+    """A recorded layout: its kind ('row', 'column' or 'split'), its split setting and its children
     (nodes, or items: (kind, texts, icon?))."""
     def __init__(self, kind, split=False):
         self.kind, self.children = kind, []
@@ -52,6 +54,11 @@ class _Node:
 
     def column(self, **kwargs):
         return self._add('column')
+
+    def split(self, factor=0.0, **kwargs):
+        child = self._add('split')
+        child.factor = factor
+        return child
 
     box = column
 
@@ -116,7 +123,7 @@ def _natural(child, u):
     """The width an item or layout asks for (a row sums its children, a column takes the widest)."""
     if isinstance(child, _Node):
         sizes = [_natural(c, u) for c in child.children] or [0.0]
-        return sum(sizes) if child.kind == 'row' else max(sizes)
+        return sum(sizes) if child.kind in ('row', 'split') else max(sizes)
     kind, texts, icon = child
     if kind == 'icon':
         return u
@@ -142,8 +149,8 @@ def _needs(kind, texts, icon, width, u):
         return [(t, _text_width(t), width - u - 0.6 * u) for t in texts]
     if kind == 'number':       # 'Name: value' inside a full-width number field
         return [(t, _text_width(t + ": 0000000"), width - 0.6 * u) for t in texts]
-    if kind == 'field':        # a label beside its field (Blender gives it a third)
-        return [(t, _text_width(t), width / 3.0 - 0.15 * u) for t in texts]
+    if kind == 'field':        # 'Name:' before its field, in a fixed slot of 8/3 units
+        return [(t + ":", _text_width(t + ":"), 8.0 * u / 3.0 - 0.6 * u) for t in texts]
     if kind == 'menu':
         return [(t, _text_width(t), width - pad - u) for t in texts]
     return [(t, _text_width(t), width - pad) for t in texts]
@@ -164,6 +171,11 @@ def _fit(node, width, u, out):
         # Blender's row: each item its natural width, scaled together to fill the row.
         natural = [_natural(c, u) for c in children]
         widths = [width * n / sum(natural) for n in natural]
+    elif node.kind == 'split' and len(children) > 1:
+        # Blender's split: the first item `factor` of the width (0: an even share), the
+        # others an even share of the rest.
+        first = width * (node.factor or 1.0 / len(children))
+        widths = [first] + [(width - first) / (len(children) - 1)] * (len(children) - 1)
     else:
         widths = [width] * len(children)
     for child, w in zip(children, widths):

@@ -84,13 +84,9 @@ def _look_around_while_it_runs(gui, idname):
           f"{zoomed:.2f}; a click on empty space left {selected} selected")
 
 
-# A take of the bar bending up and down (a source copy of it whose shape key is keyed over 24
-# frames), read with Take from Animation. While the test runs, each progress step of a Fit
-# Material job sleeps STEP seconds after it is taken, and the first one waits until the test
-# has seen the bar (GATE): the fit of this small take is otherwise over in a moment.
-STEP = 0.3
-TAKE_AND_SLOW_FIT = f"""
-import sys, threading, time
+# A take of the bar bending up and down: a source copy of it whose shape key is keyed over 24
+# frames (the bar "Bar" must exist).
+BENDING_SOURCE = """
 import numpy as np
 obj = bpy.data.objects["Bar"]
 source = obj.copy()
@@ -109,6 +105,13 @@ for frame in range(1, 25, 3):
     bend.keyframe_insert("value", frame=frame)
 bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 24
 obj.rs_elastic.take_source = source
+"""
+# That take read with Take from Animation. While the test runs, each progress step of a Fit
+# Material job sleeps STEP seconds after it is taken, and the first one waits until the test
+# has seen the bar (GATE): the fit of this small take is otherwise over in a moment.
+STEP = 0.3
+TAKE_AND_SLOW_FIT = BENDING_SOURCE + f"""
+import sys, threading, time
 with override():
     h.make_active(obj)
     assert bpy.ops.rs_elastic.take_from_animation() == {{'FINISHED'}}
