@@ -52,9 +52,9 @@ class RS_ELASTIC_PT_bake(RSElasticPanel, bpy.types.Panel):
         frames = bake.bake_frames(obj)    # whichever made it: a solve or a simulation
         if frames:
             layout.label(text=f"Baked frames {frames[0]}–{frames[-1]}", icon='SHAPEKEY_DATA')
-        row = layout.row(align=True)
-        row.operator("rs_elastic.keep_take", icon='PINNED')
-        row.operator("rs_elastic.clear_bake", icon='TRASH')
+        col = layout.column(align=True)         # side by side, half the width cut the first
+        col.operator("rs_elastic.keep_take", icon='PINNED')
+        col.operator("rs_elastic.clear_bake", icon='TRASH')
 
 
 CLASSES = (RS_ELASTIC_PT_bake,)

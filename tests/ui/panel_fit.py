@@ -6,8 +6,9 @@ columns, boxes) and its items. The tree is then given widths the way Blender's l
 in the sidebar, and every text is measured with blf in the UI font at the UI scale (font id 0,
 size: the widget style's points times the preferences' ui_scale):
 - the panels' content width is the sidebar region's width less 2.65 widget units (the tab column
-  and the panel borders); a column gives each child its full width; a row gives each item its
-  natural width (text, icon, margins) scaled together to fill the row, as Blender's row does;
+  and the panel borders); a column gives each child its full width; a row gives each item with
+  text an even share (Blender sizes them all alike in a panel: `_natural`), an icon alone one
+  unit, and a list's row each item its natural width (text, icon, margins) scaled to fill it;
 - a split gives its first child `factor` of its width and the others even shares of the rest
   (Blender's split); with use_property_split a property's label gets 0.4 of its width less the decorator's unit
   (Blender's UI_ITEM_PROP_SEP_DIVIDE), the value 0.6; a checkbox's text sits after its box in
@@ -119,15 +120,21 @@ def _icon_only(child):
     return child[0] == 'icon'
 
 
-def _natural(child, u):
-    """The width an item or layout asks for (a row sums its children, a column takes the widest)."""
+def _natural(child, u, by_text=False):
+    """The width an item or layout asks for in a row (a row sums its children, a column takes
+    the widest). In a panel: 10 units for anything with text, whatever the text, and one unit
+    for an icon alone; a panel lays out top to bottom, so Blender does not size a row's items
+    by their text there (ui_layout_variable_size): two buttons in a row get half the width
+    each (the window showed 'Keep Bake as Take' beside 'Clear Bake' cut to 'Keep Bake as …').
+    A list's rows do size by text (``by_text``: text, icon, margins; the window showed a
+    handle's name and its residual side by side, not in halves)."""
     if isinstance(child, _Node):
-        sizes = [_natural(c, u) for c in child.children] or [0.0]
+        sizes = [_natural(c, u, by_text) for c in child.children] or [0.0]
         return sum(sizes) if child.kind in ('row', 'split') else max(sizes)
     kind, texts, icon = child
     if kind == 'icon':
         return u
-    if kind == 'list':        # a list takes what its row's buttons leave
+    if kind == 'list' or not by_text:
         return 10.0 * u
     widths = [_text_width(t) + 0.6 * u for t in texts] or [0.0]
     extra = (u if icon else 0.0) + (u if kind in ('check', 'menu') else 0.0)
@@ -162,14 +169,14 @@ def _list_rows(spec, width, u, out):
     for index, item in enumerate(getattr(data, name)):
         row = _Node('row')
         drawer.draw_item(drawer, bpy.context, row, data, item, 0, active_data, active_name, index)
-        _fit(row, width - 0.5 * u, u, out)
+        _fit(row, width - 0.5 * u, u, out, by_text=True)
 
 
-def _fit(node, width, u, out):
+def _fit(node, width, u, out, by_text=False):
     children = node.children
     if node.kind == 'row' and len(children) > 1:
-        # Blender's row: each item its natural width, scaled together to fill the row.
-        natural = [_natural(c, u) for c in children]
+        # Blender's row: each item its natural width (``_natural``), scaled to fill the row.
+        natural = [_natural(c, u, by_text) for c in children]
         widths = [width * n / sum(natural) for n in natural]
     elif node.kind == 'split' and len(children) > 1:
         # Blender's split: the first item `factor` of the width (0: an even share), the
@@ -180,7 +187,7 @@ def _fit(node, width, u, out):
         widths = [width] * len(children)
     for child, w in zip(children, widths):
         if isinstance(child, _Node):
-            _fit(child, w, u, out)
+            _fit(child, w, u, out, by_text)
         elif child[0] == 'list':
             _list_rows(child[1], w - 1.2 * u, u, out)
         elif child[0] != 'icon':

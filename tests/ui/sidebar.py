@@ -77,3 +77,18 @@ def scroll(gui, area, region, pages, pixels=0):
     View2D scrolling (Page Down / Page Up), then `pixels` up."""
     gui.run(SCROLL.format(area=area, region=region, times=abs(pages), pages=pages,
                           pixels=int(pixels)))
+
+
+def open_panel(gui, idname, below, fx=0.3, reach=80, step=4):
+    """Open the closed sub-panel `idname` with a click on its header, the way a user does. Its
+    header stands below the button of operator `below` (the last button of the panel drawn
+    before it): the pointer goes down from that button `step` px at a time, clicking until the
+    panel draws (a click between two panels changes nothing; the first header below the
+    button is the panel's). Returns the window pixel clicked."""
+    x, y = find_button(gui, below)
+    x = gui.rects()["sidebar"][0] + fx * gui.rects()["sidebar"][2]
+    for header_y in range(int(y) + step, int(y) + reach, step):
+        gui.click(x, header_y)
+        if any(name == idname for name, _ in drawn_panels(gui)):
+            return x, header_y
+    raise AssertionError(f"no header of {idname} under the {below} button")
