@@ -526,9 +526,9 @@ def case_cubature(arg, num_held_out=40):
             maxima.append(float(errors.max()))
             means.append(float(errors.mean()))
             floors.append(float(floor.max()))
-        row.update(seeds=num_seeds, seeds_max_errors=maxima, seeds_mean_of_max=float(np.mean(maxima)),
-                   seeds_worst_max=float(np.max(maxima)), seeds_mean_error=float(np.mean(means)),
-                   seeds_all_tet_max_errors=floors)
+        row.update(seeds=num_seeds, seeds_max_errors=maxima,
+                   seeds_mean_of_max=float(np.mean(maxima)), seeds_worst_max=float(np.max(maxima)),
+                   seeds_mean_error=float(np.mean(means)), seeds_all_tet_max_errors=floors)
     return dict(row, peak_rss_mb=peak_rss_mb())
 
 

@@ -10,7 +10,8 @@ size: the widget style's points times the preferences' ui_scale):
   text an even share (Blender sizes them all alike in a panel: `_natural`), an icon alone one
   unit, and a list's row each item its natural width (text, icon, margins) scaled to fill it;
 - a split gives its first child `factor` of its width and the others even shares of the rest
-  (Blender's split); with use_property_split a property's label gets 0.4 of its width less the decorator's unit
+  (Blender's split);
+- with use_property_split a property's label gets 0.4 of its width less the decorator's unit
   (Blender's UI_ITEM_PROP_SEP_DIVIDE), the value 0.6; a checkbox's text sits after its box in
   the value part, an expanded enum's items share the value part;
 - a text needs its icon's unit and 0.3 unit of margin each side (0.15 unit in the split's label
