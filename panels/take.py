@@ -33,6 +33,10 @@ class RS_ELASTIC_PT_take(RSElasticPanel, bpy.types.Panel):
         layout.operator("rs_elastic.continue_motion", icon='FF')
 
 
+FACT_SPLIT = 0.4     # width of a fact's name; its value takes the rest
+MODE_SPLIT = 0.14    # width of the mode number; frequency and damping share the rest
+
+
 def draw_fitted(layout, fitted):
     """The fit's frames and residual [m], then per mode the prepared and the fitted frequency
     [Hz] and damping [1/s], in columns narrow enough for the sidebar at its default width."""
@@ -48,10 +52,6 @@ def draw_fitted(layout, fitted):
                                              fitted.prepared_damping, fitted.damping)):
         _columns(layout, MODE_SPLIT, f"{k + 1}", f"{_short(f0)} → {_short(f1)}",
                  f"{_short(d0)} → {_short(d1)}")
-
-
-FACT_SPLIT = 0.4     # width of a fact's name; its value takes the rest
-MODE_SPLIT = 0.14    # width of the mode number; frequency and damping share the rest
 
 
 def _columns(layout, factor, *texts):

@@ -85,8 +85,9 @@ def open_panel(gui, idname, below, fx=0.3, reach=80, step=4):
     before it): the pointer goes down from that button `step` px at a time, clicking until the
     panel draws (a click between two panels changes nothing; the first header below the
     button is the panel's). Returns the window pixel clicked."""
-    x, y = find_button(gui, below)
-    x = gui.rects()["sidebar"][0] + fx * gui.rects()["sidebar"][2]
+    _, y = find_button(gui, below)
+    left, _, width, _ = gui.rects()["sidebar"]
+    x = left + fx * width
     for header_y in range(int(y) + step, int(y) + reach, step):
         gui.click(x, header_y)
         if any(name == idname for name, _ in drawn_panels(gui)):
